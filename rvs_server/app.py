@@ -1,0 +1,359 @@
+"""Builds an RVS server from a configuration directory and runs it: devices, modules, transports.
+
+    rvs-server [--host H] [--port P] [--zmq-port Z] [--data-dir D] [--config-dir C]
+               [--sim-speed S] [--token-file F]
+
+Exit status: 0 after `quit` or a signal, 2 when a configuration file or an option is invalid.
+"""
+from __future__ import annotations
+
+import argparse
+import asyncio
+import ipaddress
+import logging
+import os
+import signal
+import stat
+import sys
+import time
+from pathlib import Path
+from typing import Any, Mapping
+
+from pydantic import Field, ValidationError
+
+from drivers.sim.clock import SimClock
+
+from . import __version__
+from .config import ConfigError, Settings, load_model, read_toml, validate_section
+from .devices import Devices, DevicesConfig
+from .dispatch import CommandSpec, Dispatcher, Module, Registry, Session
+from .jobs import JobCounter, RecoveryStore
+from .protocol import BadRequest
+from .transports.tcp import start_tcp
+from .transports.zmq import ZmqTransport
+
+log = logging.getLogger("rvs")
+
+
+class ServerConfig(Settings):
+    """configs/server.toml; the command-line options override it."""
+
+    host: str = "127.0.0.1"
+    port: int = Field(7400, ge=0, le=65535)
+    zmq_port: int = Field(7401, ge=0, le=65534, description="ROUTER; the PUB socket is on zmq_port + 1")
+    data_dir: str = "./data"
+    shared_dir: str = Field("", description="where logbook copies the log; default DATA_DIR/shared")
+    token_file: str | None = None
+    sim_speed: float = Field(1.0, gt=0, le=10000, description="simulated seconds per wall second")
+    break_timeout_s: float = Field(30.0, gt=0, description="how long break waits for a safe point")
+    quit_timeout_s: float = Field(30.0, gt=0, description="how long quit waits for the job to stop")
+    log_level: str = Field("INFO", pattern="^(DEBUG|INFO|WARNING|ERROR)$")
+
+
+def all_modules() -> list[Module]:
+    from .modules import ptu, system
+    return [system.module, ptu.module]
+
+
+class ModuleConfig:
+    """A module's settings and its commands' default options, from `configs/<module>.toml`."""
+
+    def __init__(self, settings: Any, defaults: dict[str, dict[str, Any]]):
+        self.settings = settings
+        self.defaults = defaults
+
+
+def load_module_config(config_dir: Path, module: Module) -> ModuleConfig:
+    path = config_dir / f"{module.name}.toml"
+    data = read_toml(path)
+    commands = {spec.name: spec for spec in module.commands}
+    defaults: dict[str, dict[str, Any]] = {}
+    for key in [k for k in data if k in commands]:
+        table = data.pop(key)
+        if not isinstance(table, dict):
+            raise ConfigError(f"{path}: [{key}] must be a table of default options")
+        _validate_defaults(path, commands[key], table)
+        defaults[key] = {k.replace("-", "_"): v for k, v in table.items()}
+    if module.settings is None:
+        if data:
+            raise ConfigError(f"{path}: field {next(iter(data))}: unknown; this module has no settings, "
+                              f"only tables named after its commands: {', '.join(commands)}")
+        settings = None
+    else:
+        settings = validate_section(module.settings, data, str(path))
+    return ModuleConfig(settings, defaults)
+
+
+def _validate_defaults(path: Path, spec: CommandSpec, table: dict[str, Any]) -> None:
+    """Defaults must be valid values of the command's options; required options may stay missing."""
+    from .config import describe_validation_error
+    values = {k.replace("-", "_"): v for k, v in table.items()}
+    try:
+        spec.config.model_validate(values)
+    except ValidationError as exc:
+        real = [e for e in exc.errors() if e["type"] != "missing"]
+        if real:
+            raise ConfigError(describe_validation_error(
+                ValidationError.from_exception_data(exc.title, real), spec.config, f"{path} [{spec.name}]",
+                name_of=lambda loc: "field " + ".".join(str(p) for p in loc))) from None
+
+
+def read_token(path: Path) -> str:
+    """The token file must be readable by its owner only, or anyone on the machine could use it."""
+    try:
+        info = path.stat()
+    except OSError as exc:
+        raise ConfigError(f"token file {path}: {exc.strerror}") from None
+    if info.st_mode & (stat.S_IRWXG | stat.S_IRWXO):
+        raise ConfigError(f"token file {path}: mode {stat.filemode(info.st_mode)} lets others read it; "
+                          f"chmod 600 {path}")
+    if info.st_uid != os.getuid():
+        raise ConfigError(f"token file {path}: owned by uid {info.st_uid}, not by this user ({os.getuid()})")
+    token = path.read_text().strip()
+    if len(token) < 8:
+        raise ConfigError(f"token file {path}: the token must be at least 8 characters")
+    return token
+
+
+def is_loopback(host: str) -> bool:
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+class Server:
+    def __init__(self, config_dir: Path, overrides: Mapping[str, Any] | None = None):
+        self.version = __version__
+        self.config_dir = config_dir
+        self.overrides = dict(overrides or {})
+        self.modules = all_modules()
+        self.registry = Registry(self.modules)
+        self._load_configuration()  # raises ConfigError; nothing is started before it passed
+        self.data_dir = Path(self.settings.data_dir).resolve()
+        self.data_dir.mkdir(parents=True, exist_ok=True)
+        self.shared_dir = Path(self.settings.shared_dir).resolve() if self.settings.shared_dir else \
+            self.data_dir / "shared"
+        self.token = read_token(Path(self.settings.token_file)) if self.settings.token_file else None
+        if not is_loopback(self.settings.host) and self.token is None:
+            raise ConfigError(f"host {self.settings.host} is not loopback: listening there requires "
+                              f"--token-file (a file only its owner can read)")
+        self.clock = SimClock(self.settings.sim_speed)
+        self.recovery = RecoveryStore(self.data_dir / "recovery")
+        self.job_counter = JobCounter(self.data_dir / "jobs.counter")
+        self.sessions: set[Session] = set()
+        self.dispatcher = Dispatcher(self)
+        self.devices = Devices(self.devices_config, self.clock)
+        self.zmq: ZmqTransport | None = None
+        self.started = time.monotonic()
+        self.log_handlers: list[logging.Handler] = []
+        self.log_path = self._start_log()
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._stopped: asyncio.Event | None = None
+        self._tcp: asyncio.AbstractServer | None = None
+
+    # -- configuration --------------------------------------------------------------------------
+
+    def _load_configuration(self) -> None:
+        d = self.config_dir
+        self.settings = load_model(d / "server.toml", ServerConfig, self.overrides)
+        self.devices_config = load_model(d / "devices.toml", DevicesConfig)
+        self.module_configs = {m.name: load_module_config(d, m) for m in self.modules}
+
+    def reload_configuration(self) -> None:
+        """`reinit`: read every file again; on any error keep the running configuration."""
+        old = (self.settings, self.devices_config, self.module_configs)
+        try:
+            self._load_configuration()
+        except ConfigError as exc:
+            self.settings, self.devices_config, self.module_configs = old
+            raise BadRequest(f"configuration not reloaded: {exc}") from None
+
+    def module_settings(self, module: Module | None) -> Any:
+        return self.module_configs[module.name].settings if module else None
+
+    def command_defaults(self, spec: CommandSpec) -> dict[str, Any]:
+        if spec.module is None:
+            return {}
+        return self.module_configs[spec.module.name].defaults.get(spec.name, {})
+
+    def reopen_devices(self) -> None:
+        self.devices.close_all()
+        self.devices = Devices(self.devices_config, self.clock)
+        self.devices.open_all()
+
+    # -- logging and events ---------------------------------------------------------------------
+
+    def _start_log(self) -> Path:
+        logs = self.data_dir / "logs"
+        logs.mkdir(parents=True, exist_ok=True)
+        path = logs / f"rvs-{time.strftime('%Y%m%d-%H%M%S')}-{os.getpid()}.log"
+        root = logging.getLogger("rvs")
+        root.setLevel(self.settings.log_level)
+        fmt = logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s")
+        to_file = logging.FileHandler(path)
+        to_file.setFormatter(fmt)
+        to_stderr = logging.StreamHandler(sys.stderr)
+        to_stderr.setFormatter(fmt)
+        to_events = _EventHandler(self)
+        to_events.setLevel(logging.INFO)
+        for handler in (to_file, to_stderr, to_events):
+            root.addHandler(handler)
+        self.log_handlers = [to_file, to_stderr, to_events]
+        return path
+
+    def publish(self, topic: str, data: Mapping[str, Any]) -> None:
+        """Send an event to subscribed connections and the PUB socket (event-loop thread only)."""
+        for session in list(self.sessions):
+            if topic in session.topics and session.send_event is not None:
+                session.send_event(topic, data)
+        if self.zmq is not None:
+            self.zmq.publish(topic, data)
+
+    def publish_threadsafe(self, topic: str, data: Mapping[str, Any]) -> None:
+        loop = self._loop
+        if loop is None or loop.is_closed():
+            return
+        try:
+            if threading_is_loop(loop):
+                self.publish(topic, data)
+            else:
+                loop.call_soon_threadsafe(self.publish, topic, dict(data))
+        except RuntimeError:  # the loop closed between the check and the call
+            pass
+
+    # -- running --------------------------------------------------------------------------------
+
+    async def start(self) -> None:
+        self._loop = asyncio.get_running_loop()
+        self._stopped = asyncio.Event()
+        await asyncio.to_thread(self.devices.open_all)
+        for device in self.devices:
+            if device.health == "fault":
+                log.error("%s failed to open: %s (the server runs on; reset retries)", device.name,
+                          device.last_error)
+        s = self.settings
+        self._tcp = await start_tcp(self, s.host, s.port)
+        self.zmq = ZmqTransport(self)
+        self.zmq.bind(s.host, s.zmq_port)
+        self._zmq_task = asyncio.ensure_future(self.zmq.serve())
+        tcp_port = self._tcp.sockets[0].getsockname()[1]
+        self.address = (s.host, tcp_port)
+        log.info("RVS %s listening tcp=%s:%d zmq=%s pub=%s data=%s log=%s", self.version, s.host, tcp_port,
+                 self.zmq.router_endpoint, self.zmq.pub_endpoint, self.data_dir, self.log_path)
+        # One machine-readable line on stdout, for scripts and tests that start the server on port 0.
+        print(f"rvs-server ready tcp={s.host}:{tcp_port} zmq={self.zmq.router_endpoint} "
+              f"pub={self.zmq.pub_endpoint} pid={os.getpid()}", flush=True)
+
+    async def run(self) -> None:
+        await self.start()
+        assert self._stopped is not None
+        await self._stopped.wait()
+
+    def shutdown(self, reason: str = "quit"):
+        """Interrupt the job (keeping its recovery set), park and close devices, then stop."""
+        async def stop() -> dict[str, Any]:
+            job = self.dispatcher.job
+            interrupted = "none"
+            if job is not None:
+                job.request_interrupt(reason)
+                await self.dispatcher.wait_job(job, self.settings.quit_timeout_s)
+                interrupted = job.id
+            await asyncio.to_thread(self._park_and_close)
+            for handler in self.log_handlers:
+                handler.flush()
+            asyncio.get_running_loop().call_later(0.05, self._finish)
+            return {"job": interrupted, "recovery": self.recovery.count(), "log": str(self.log_path)}
+        return stop()
+
+    def _park_and_close(self) -> None:
+        for device in self.devices:
+            if getattr(getattr(device, "config", None), "park_on_quit", False):
+                device.park()
+        self.devices.close_all()
+
+    def _finish(self) -> None:
+        for session in list(self.sessions):
+            if session.close is not None:
+                session.close()
+        if self._tcp is not None:
+            self._tcp.close()
+        if self.zmq is not None:
+            self._zmq_task.cancel()
+            self.zmq.close()
+            self.zmq = None
+        self.dispatcher.shutdown()
+        log.info("RVS stopped")
+        if self._stopped is not None:
+            self._stopped.set()
+
+
+def threading_is_loop(loop: asyncio.AbstractEventLoop) -> bool:
+    try:
+        return asyncio.get_running_loop() is loop
+    except RuntimeError:
+        return False
+
+
+class _EventHandler(logging.Handler):
+    """Log records become `log` events for subscribers (the `log` topic)."""
+
+    def __init__(self, server: Server):
+        super().__init__()
+        self.server = server
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if record.name.startswith("rvs.tcp") or record.name.startswith("rvs.zmq"):
+            return  # connection chatter would echo every subscriber's own traffic back to it
+        try:
+            self.server.publish_threadsafe("log", {"level": record.levelname, "source": record.name,
+                                                   "message": record.getMessage()})
+        except Exception:
+            self.handleError(record)
+
+
+# ---------------------------------------------------------------------------------------------
+# Command line
+
+
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(prog="rvs-server", description="The Rover Vision System server.")
+    parser.add_argument("--host", help="address to listen on (default 127.0.0.1)")
+    parser.add_argument("--port", type=int, help="text (telnet) port (default 7400; 0 picks a free one)")
+    parser.add_argument("--zmq-port", type=int, help="ZeroMQ ROUTER port; PUB on the next (default 7401)")
+    parser.add_argument("--data-dir", help="where products, logs and recovery sets go (default ./data)")
+    parser.add_argument("--config-dir", default="./configs", help="configuration files (default ./configs)")
+    parser.add_argument("--sim-speed", type=float, help="simulated seconds per wall second (default 1.0)")
+    parser.add_argument("--token-file", help="file holding the token clients must send with auth")
+    return parser.parse_args(argv)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    overrides = {"host": args.host, "port": args.port, "zmq_port": args.zmq_port, "data_dir": args.data_dir,
+                 "sim_speed": args.sim_speed, "token_file": args.token_file}
+    try:
+        server = Server(Path(args.config_dir), overrides)
+    except ConfigError as exc:
+        print(f"rvs-server: {exc}", file=sys.stderr)
+        return 2
+
+    async def run() -> None:
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.add_signal_handler(sig, lambda: asyncio.ensure_future(server.shutdown("quit")))
+        await server.run()
+
+    try:
+        asyncio.run(run())
+    except OSError as exc:  # the port is taken, the address is not ours
+        print(f"rvs-server: cannot listen: {exc}", file=sys.stderr)
+        server.devices.close_all()
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,207 @@
+"""The devices the server drives, built from `configs/devices.toml`, with their health.
+
+Each device is a thin wrapper around a driver from `drivers/`: it opens the real backend or the
+emulator the config names, keeps its health (`ok`, `fault`, `off`) and its last error for `status`,
+and gives jobs the driver once the device is healthy.
+"""
+from __future__ import annotations
+
+import logging
+import threading
+from typing import Any, Literal
+
+from pydantic import Field
+
+from drivers.errors import DeviceFault
+from drivers.sim.clock import SimClock
+
+from .config import Settings
+from .protocol import DeviceError
+
+log = logging.getLogger("rvs.devices")
+
+Health = Literal["ok", "fault", "off"]
+
+
+class PtuDeviceConfig(Settings):
+    enabled: bool = True
+    backend: Literal["sim", "serial"] = Field("sim", description="sim: the emulator on a pseudo-terminal")
+    port: str = Field("/dev/ttyS0", description="serial device or pyserial URL, for backend serial")
+    baudrate: int = Field(9600, gt=0)
+    timeout_s: float = Field(2.0, gt=0, le=60, description="read timeout of one command, wall seconds")
+    poll_interval_s: float = Field(0.1, gt=0, le=10, description="how often the position is read, wall s")
+    park_pan_deg: float = 0.0
+    park_tilt_deg: float = 0.0
+    park_on_quit: bool = True
+
+
+class DevicesConfig(Settings):
+    ptu: PtuDeviceConfig = PtuDeviceConfig()
+
+
+class Device:
+    """Health bookkeeping shared by every device."""
+
+    name = "device"
+
+    def __init__(self) -> None:
+        self.health: Health = "off"
+        self.last_error = ""
+
+    def _fault(self, exc: BaseException) -> None:
+        self.health = "fault"
+        self.last_error = str(exc)
+        log.error("%s: %s", self.name, exc)
+
+    def require(self) -> Any:
+        """The driver, or ERR 503 naming the device and its last error."""
+        if self.health != "ok":
+            detail = f": {self.last_error}" if self.last_error else ""
+            raise DeviceError(f"{self.name} is {self.health}{detail}")
+        return self.driver  # type: ignore[attr-defined]
+
+    def open(self) -> None: ...
+    def close(self) -> None: ...
+    def check(self) -> None: ...
+    def reset(self) -> None: ...
+    def park(self) -> None: ...
+
+
+class PtuDevice(Device):
+    """The pan-tilt unit: the PTU-D46 driver over a serial port or over the emulator's pty."""
+
+    name = "ptu"
+
+    def __init__(self, config: PtuDeviceConfig, clock: SimClock):
+        super().__init__()
+        self.config = config
+        self.clock = clock
+        self.driver: Any = None
+        self.emulator: Any = None
+        self._position: tuple[float, float] | None = None
+        self._stop = threading.Event()
+        self._poller: threading.Thread | None = None
+
+    def open(self) -> None:
+        if not self.config.enabled:
+            self.health = "off"
+            return
+        from drivers.ptu import PtuD46, PtuEmulator
+        try:
+            if self.config.backend == "sim":
+                if self.emulator is None:
+                    self.emulator = PtuEmulator(self.clock)
+                    self.url = self.emulator.serve_pty()
+            else:
+                self.url = self.config.port
+            self.driver = PtuD46(self.url, baudrate=self.config.baudrate, timeout=self.config.timeout_s)
+            self.driver.open()
+            self._position = self.driver.position()
+            self.health, self.last_error = "ok", ""
+        except (DeviceFault, OSError) as exc:
+            self._fault(exc)
+            return
+        self._stop.clear()
+        self._poller = threading.Thread(target=self._poll, name="rvs-ptu-poll", daemon=True)
+        self._poller.start()
+
+    def _poll(self) -> None:
+        """Keep the position fresh so `status` answers at once, even while a job holds the unit."""
+        while not self._stop.wait(self.config.poll_interval_s):
+            try:
+                self._position = self.driver.position()
+                if self.health == "fault" and self.last_error.startswith("not answering"):
+                    self.health, self.last_error = "ok", ""
+            except DeviceFault as exc:
+                if self.health == "ok":
+                    self._fault(DeviceFault(f"not answering: {exc}", "ptu"))
+            except Exception as exc:  # a closed port during shutdown
+                if self._stop.is_set():
+                    return
+                self._fault(exc)
+
+    def position(self) -> tuple[float, float] | None:
+        return self._position if self.health == "ok" else None
+
+    def read_position(self) -> tuple[float, float]:
+        self._position = self.driver.position()
+        return self._position
+
+    def check(self) -> None:
+        if not self.config.enabled:
+            self.health = "off"
+            return
+        if self.driver is None:
+            self.open()
+            return
+        try:
+            self.driver.check()
+            self.health, self.last_error = "ok", ""
+        except (DeviceFault, OSError) as exc:
+            self._fault(exc)
+
+    def reset(self) -> None:
+        """Re-initialise: recalibrate the axes and run the start-up sequence again."""
+        self.close()
+        self.open()
+        if self.health == "ok":
+            try:
+                self.driver.reset()
+                self.driver.open()
+            except (DeviceFault, OSError) as exc:
+                self._fault(exc)
+
+    def park(self) -> None:
+        if self.health != "ok":
+            return
+        try:
+            self.driver.move_to(self.config.park_pan_deg, self.config.park_tilt_deg)
+            self.driver.wait_until_stopped(timeout_s=60.0)
+        except (DeviceFault, OSError) as exc:
+            self._fault(exc)
+
+    def close(self) -> None:
+        self._stop.set()
+        if self._poller is not None:
+            self._poller.join(timeout=2)
+            self._poller = None
+        if self.driver is not None:
+            try:
+                self.driver.close()
+            except Exception as exc:  # closing must never stop a shutdown
+                log.warning("ptu close: %s", exc)
+            self.driver = None
+        if self.emulator is not None:
+            self.emulator.stop()
+            self.emulator = None
+        self.health = "off"
+
+
+class Devices:
+    """Every device by name, in the order they were configured."""
+
+    def __init__(self, config: DevicesConfig, clock: SimClock):
+        self.config = config
+        self.clock = clock
+        self.items: dict[str, Device] = {"ptu": PtuDevice(config.ptu, clock)}
+
+    def __getitem__(self, name: str) -> Device:
+        return self.items[name]
+
+    def __iter__(self):
+        return iter(self.items.values())
+
+    @property
+    def ptu(self) -> PtuDevice:
+        return self.items["ptu"]  # type: ignore[return-value]
+
+    def open_all(self) -> None:
+        for device in self:
+            device.open()
+
+    def close_all(self) -> None:
+        for device in self:
+            device.close()
+
+    def health(self) -> dict[str, str]:
+        return {f"dev.{d.name}": d.health for d in self}

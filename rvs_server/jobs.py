@@ -1,0 +1,206 @@
+"""The one running job: its worker thread, progress, interruption at safe points, recovery sets.
+
+A job handler is a plain function `handler(ctx: JobContext, cfg) -> dict` that runs in a worker
+thread, so device I/O and heavy computation never block the transports. It reports progress with
+`ctx.progress`, saves what it has finished with `ctx.checkpoint`, and calls `ctx.safe_point()` (or
+`ctx.sleep`) where stopping is harmless; `break` makes the next safe point raise JobInterrupted.
+
+Every job that can be resumed has a recovery set on disk from its first instant: the command, its
+options and the last checkpoint. It is deleted when the job ends normally, so after `break`, `quit`,
+a device fault or a crash the set is still there, and `continue` picks it up, even after a restart.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import os
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+from .protocol import RvsError
+
+log = logging.getLogger("rvs.jobs")
+
+
+class JobInterrupted(Exception):
+    """Raised inside a job at a safe point after `break` or `quit`."""
+
+    def __init__(self, reason: str = "break"):
+        super().__init__(reason)
+        self.reason = reason
+
+
+@dataclass
+class RecoverySet:
+    """What `continue` needs to resume a job: the command as validated, and its last checkpoint."""
+
+    job: str
+    command: str
+    options: dict[str, Any]
+    line: str
+    state: dict[str, Any] | None = None
+    created: float = field(default_factory=time.time)
+    updated: float = field(default_factory=time.time)
+    reason: str = "running"  # running (crashed if found at start-up) | break | quit | device | timeout
+    percent: float = 0.0
+    devices: list[str] = field(default_factory=list)
+
+    def to_json(self) -> dict[str, Any]:
+        return dict(self.__dict__)
+
+
+class RecoveryStore:
+    """Recovery sets as JSON files under `<data>/recovery/`, written atomically."""
+
+    def __init__(self, directory: Path):
+        self.directory = directory
+        self.directory.mkdir(parents=True, exist_ok=True)
+
+    def _path(self, job: str) -> Path:
+        return self.directory / f"{job}.json"
+
+    def save(self, rset: RecoverySet) -> None:
+        rset.updated = time.time()
+        tmp = self._path(rset.job).with_suffix(".tmp")
+        with open(tmp, "w") as handle:
+            json.dump(rset.to_json(), handle, indent=1, default=_jsonable)
+            handle.flush()
+            os.fsync(handle.fileno())  # a power cut must not leave a half-written set
+        os.replace(tmp, self._path(rset.job))
+
+    def load(self, job: str) -> RecoverySet | None:
+        path = self._path(job)
+        if not path.exists():
+            return None
+        try:
+            with open(path) as handle:
+                return RecoverySet(**json.load(handle))
+        except (OSError, ValueError, TypeError) as exc:
+            log.error("recovery set %s is unreadable: %s", path, exc)
+            return None
+
+    def delete(self, job: str) -> None:
+        self._path(job).unlink(missing_ok=True)
+
+    def all(self) -> list[RecoverySet]:
+        sets = [self.load(p.stem) for p in self.directory.glob("*.json")]
+        return sorted((s for s in sets if s is not None), key=lambda s: (s.updated, _job_number(s.job)))
+
+    def latest(self) -> RecoverySet | None:
+        sets = self.all()
+        return sets[-1] if sets else None
+
+    def count(self) -> int:
+        return sum(1 for _ in self.directory.glob("*.json"))
+
+
+def _job_number(job: str) -> int:
+    return int(job) if job.isdigit() else -1
+
+
+def _jsonable(value: Any) -> Any:
+    if isinstance(value, (tuple, set)):
+        return list(value)
+    if isinstance(value, Path):
+        return str(value)
+    if hasattr(value, "tolist"):
+        return value.tolist()
+    raise TypeError(f"cannot store {type(value).__name__} in a recovery set")
+
+
+class JobCounter:
+    """Job ids are numbers that keep counting across restarts, so a recovery set's id is unique."""
+
+    def __init__(self, path: Path):
+        self.path = path
+        self._lock = threading.Lock()
+
+    def next(self) -> str:
+        with self._lock:
+            try:
+                current = int(self.path.read_text().strip() or 0)
+            except (OSError, ValueError):
+                current = 0
+            current += 1
+            tmp = self.path.with_suffix(".tmp")
+            tmp.write_text(f"{current}\n")
+            os.replace(tmp, self.path)
+            return str(current)
+
+
+class Job:
+    """The state of one running job, shared between the event loop and its worker thread."""
+
+    def __init__(self, job_id: str, command: str, line: str):
+        self.id = job_id
+        self.command = command
+        self.line = line
+        self.percent = 0.0
+        self.message = ""
+        self.started = time.time()
+        self.interrupt = threading.Event()
+        self.interrupt_reason = "break"
+        self.done = threading.Event()
+
+    def request_interrupt(self, reason: str) -> None:
+        self.interrupt_reason = reason
+        self.interrupt.set()
+
+
+class JobContext:
+    """What a job handler sees: progress, checkpoints, safe points, devices, clock, data directory."""
+
+    def __init__(self, job: Job, server: Any, rset: RecoverySet | None, resume: dict[str, Any] | None,
+                 on_progress: Callable[[float, str], None], store: RecoveryStore | None,
+                 settings: Any = None):
+        self.job = job
+        self.server = server
+        self.resume = resume  # the last checkpoint when this run continues an interrupted job
+        self.settings = settings  # the module's settings from its TOML file
+        self._rset = rset
+        self._store = store
+        self._on_progress = on_progress
+        self.log = logging.getLogger(f"rvs.job.{job.command}")
+
+    @property
+    def devices(self) -> Any:
+        return self.server.devices
+
+    @property
+    def clock(self) -> Any:
+        return self.server.clock
+
+    @property
+    def data_dir(self) -> Path:
+        return self.server.data_dir
+
+    def progress(self, percent: float, message: str) -> None:
+        self.job.percent = float(max(0.0, min(100.0, percent)))
+        self.job.message = message
+        self._on_progress(self.job.percent, message)
+
+    def checkpoint(self, state: dict[str, Any]) -> None:
+        """Persist what is finished; `continue` hands it back as `ctx.resume`."""
+        if self._rset is None or self._store is None:
+            return
+        self._rset.state = state
+        self._rset.percent = self.job.percent
+        self._store.save(self._rset)
+
+    def interrupted(self) -> bool:
+        return self.job.interrupt.is_set()
+
+    def safe_point(self) -> None:
+        if self.job.interrupt.is_set():
+            raise JobInterrupted(self.job.interrupt_reason)
+
+    def sleep(self, sim_seconds: float) -> None:
+        """Wait in simulated time; a `break` ends the wait at once."""
+        if self.clock.wait(self.job.interrupt, sim_seconds):
+            raise JobInterrupted(self.job.interrupt_reason)
+
+    def publish(self, topic: str, data: dict[str, Any]) -> None:
+        self.server.publish_threadsafe(topic, data)

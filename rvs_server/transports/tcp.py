@@ -1,0 +1,170 @@
+"""The telnet-friendly text transport: one command per line, one final reply per command line.
+
+Bytes arrive as they like; this layer drops telnet negotiation (IAC sequences), splits lines on LF
+(ignoring a CR before it), refuses lines over 8192 bytes and bytes that are not UTF-8 without
+losing the connection, assigns tag numbers, and hands each command to the dispatcher.
+"""
+from __future__ import annotations
+
+import asyncio
+import logging
+from typing import Any, Mapping
+
+from ..dispatch import Request, Session
+from ..protocol import (LINE_END, MAX_LINE_BYTES, BadRequest, RvsError, format_err, format_error, format_event,
+                        format_ok, format_progress, is_ignored, parse_line, split_tag)
+
+log = logging.getLogger("rvs.tcp")
+
+IAC, SB, SE = 255, 250, 240
+WILL, WONT, DO, DONT = 251, 252, 253, 254
+
+
+class TelnetFilter:
+    """Removes telnet IAC sequences from a byte stream, across chunk boundaries."""
+
+    def __init__(self) -> None:
+        self._state = "data"
+
+    def feed(self, data: bytes) -> bytes:
+        if IAC not in data and self._state == "data":
+            return data
+        out = bytearray()
+        for byte in data:
+            state = self._state
+            if state == "data":
+                if byte == IAC:
+                    self._state = "iac"
+                else:
+                    out.append(byte)
+            elif state == "iac":
+                if byte == IAC:  # an escaped 255 is data (and never valid UTF-8, so it will be refused)
+                    out.append(IAC)
+                    self._state = "data"
+                elif byte in (WILL, WONT, DO, DONT):
+                    self._state = "option"
+                elif byte == SB:
+                    self._state = "sub"
+                else:
+                    self._state = "data"
+            elif state == "option":
+                self._state = "data"
+            elif state == "sub":
+                if byte == IAC:
+                    self._state = "sub-iac"
+            elif state == "sub-iac":
+                self._state = "data" if byte == SE else "sub"
+        return bytes(out)
+
+
+class LineSink:
+    """Replies to one command line on one connection, framed with its tag."""
+
+    def __init__(self, connection: "TextConnection", tag: str):
+        self.connection = connection
+        self.tag = tag
+
+    def progress(self, percent: float, message: str) -> None:
+        self.connection.send_line(format_progress(self.tag, percent, message))
+
+    def ok(self, data: Mapping[str, Any]) -> None:
+        self.connection.send_line(format_ok(self.tag, data))
+
+    def error(self, error: RvsError) -> None:
+        self.connection.send_line(format_error(self.tag, error))
+
+
+class TextConnection(asyncio.Protocol):
+    def __init__(self, server: Any):
+        self.server = server
+        self.transport: asyncio.Transport | None = None
+        self.telnet = TelnetFilter()
+        self.buffer = bytearray()
+        self.discarding: bytes | None = None  # the start of an over-long line being thrown away
+        self.count = 0
+        self.session: Session | None = None
+
+    # -- asyncio.Protocol ----------------------------------------------------------------------
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        self.transport = transport  # type: ignore[assignment]
+        peer = transport.get_extra_info("peername")
+        name = f"tcp {peer[0]}:{peer[1]}" if isinstance(peer, tuple) else "tcp"
+        self.session = Session(name=name, send_event=self.send_event, close=self.close)
+        self.server.sessions.add(self.session)
+        log.info("%s connected", name)
+        self.send_line(f"RVS {self.server.version} {self.server.dispatcher.mode}")
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        if self.session is not None:
+            self.server.sessions.discard(self.session)
+            log.info("%s disconnected", self.session.name)
+        self.transport = None
+
+    def data_received(self, data: bytes) -> None:
+        self.buffer += self.telnet.feed(data)
+        while True:
+            end = self.buffer.find(b"\n")
+            if end < 0:
+                break
+            raw = bytes(self.buffer[:end])
+            del self.buffer[:end + 1]
+            self._line(raw)
+        if len(self.buffer) > MAX_LINE_BYTES + 1:  # +1: room for the CR of a CRLF
+            if self.discarding is None:
+                self.discarding = bytes(self.buffer[:64])
+            self.buffer.clear()
+
+    # -- lines ----------------------------------------------------------------------------------
+
+    def _line(self, raw: bytes) -> None:
+        if raw.endswith(b"\r"):
+            raw = raw[:-1]
+        if self.discarding is not None:
+            head, self.discarding = self.discarding, None
+            self._refuse(head, "line-too-long", f"line longer than {MAX_LINE_BYTES} bytes, discarded")
+            return
+        if len(raw) > MAX_LINE_BYTES:
+            self._refuse(raw[:64], "line-too-long", f"line of {len(raw)} bytes is longer than {MAX_LINE_BYTES}")
+            return
+        try:
+            text = raw.decode("utf-8")
+        except UnicodeDecodeError as exc:
+            if is_ignored(raw.decode("utf-8", "replace")):  # a comment stays a comment
+                return
+            self._refuse(raw, "bad-encoding", f"bytes are not UTF-8 (byte {exc.start}: {raw[exc.start]:#04x})")
+            return
+        if is_ignored(text):
+            return
+        self.count += 1
+        tag, _ = split_tag(text)
+        tag = tag or str(self.count)
+        try:
+            parsed = parse_line(text)
+        except RvsError as exc:
+            self.send_line(format_error(tag, exc))
+            return
+        self.server.dispatcher.submit(Request.from_line(parsed), self.session, LineSink(self, tag))
+
+    def _refuse(self, head: bytes, reason: str, message: str) -> None:
+        """A line that never reaches the parser still counts, and keeps a well-formed tag."""
+        self.count += 1
+        tag, _ = split_tag(head.decode("utf-8", "replace"))
+        err = BadRequest(message, reason=reason)
+        self.send_line(format_err(tag or str(self.count), err.code, err.reason, err.message))
+
+    def send_line(self, line: str) -> None:
+        if self.transport is not None and not self.transport.is_closing():
+            self.transport.write((line + LINE_END).encode("utf-8"))
+
+    def send_event(self, topic: str, data: Mapping[str, Any]) -> None:
+        self.send_line(format_event(topic, data))
+
+    def close(self) -> None:
+        if self.transport is not None:
+            self.transport.close()
+
+
+async def start_tcp(server: Any, host: str, port: int) -> asyncio.AbstractServer:
+    loop = asyncio.get_running_loop()
+    return await loop.create_server(lambda: TextConnection(server), host, port, reuse_address=True)
