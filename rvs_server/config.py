@@ -220,10 +220,16 @@ def validate_section(model: type[Settings], data: Mapping[str, Any], where: str)
 
 
 def load_model(path: Path, model: type[Settings], overrides: Mapping[str, Any] | None = None) -> Settings:
-    """Load one TOML file into a model; values in `overrides` (from the command line) win."""
+    """Load one TOML file into a model; values in `overrides` (from the command line) win.
+
+    The file is validated on its own first, so a bad value in it is reported even when the command
+    line happens to override it.
+    """
     data = read_toml(path)
-    data.update({k: v for k, v in (overrides or {}).items() if v is not None})
-    return validate_section(model, data, str(path))
+    validate_section(model, data, str(path))
+    given = {k: v for k, v in (overrides or {}).items() if v is not None}
+    return validate_section(model, {**data, **given}, "command line") if given else validate_section(
+        model, data, str(path))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -265,9 +271,6 @@ def bind_tokens(command: str, tokens: tuple[str, ...] | list[str], config: type[
                 values[field_name] = inline
             else:
                 values[field_name] = not negated
-        elif negated:
-            raise BadRequest(f"{command}: --no-{name[3:]} is not a flag; {option_name(field_name)} takes a "
-                             f"{describe_allowed(info)}")
         elif has_value:
             values[field_name] = inline
         else:

@@ -78,6 +78,7 @@ class PtuDevice(Device):
         self.clock = clock
         self.driver: Any = None
         self.emulator: Any = None
+        self._line: Any = None  # the emulator's pseudo-terminal
         self._position: tuple[float, float] | None = None
         self._stop = threading.Event()
         self._poller: threading.Thread | None = None
@@ -91,10 +92,11 @@ class PtuDevice(Device):
             if self.config.backend == "sim":
                 if self.emulator is None:
                     self.emulator = PtuEmulator(self.clock)
-                    self.url = self.emulator.serve_pty()
+                    self._line = self.emulator.serve_pty()
+                self.url = self._line.path
             else:
                 self.url = self.config.port
-            self.driver = PtuD46(self.url, baudrate=self.config.baudrate, timeout=self.config.timeout_s)
+            self.driver = PtuD46(self.url, clock=self.clock, reply_timeout_s=self.config.timeout_s)
             self.driver.open()
             self._position = self.driver.position()
             self.health, self.last_error = "ok", ""
@@ -171,8 +173,9 @@ class PtuDevice(Device):
             except Exception as exc:  # closing must never stop a shutdown
                 log.warning("ptu close: %s", exc)
             self.driver = None
-        if self.emulator is not None:
-            self.emulator.stop()
+        if self._line is not None:
+            self._line.stop()
+            self._line = None
             self.emulator = None
         self.health = "off"
 

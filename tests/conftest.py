@@ -99,6 +99,7 @@ class LineClient:
         self.buffer = b""
         self.greeting = self.read_line()
         self.events: list[str] = []
+        self.pending: list[str] = []  # replies read but not yet asked for
 
     def __enter__(self) -> "LineClient":
         return self
@@ -130,22 +131,29 @@ class LineClient:
         return line.decode().rstrip("\r")
 
     def reply(self, tag: str, timeout: float = 30.0) -> tuple[str, list[str]]:
-        """Read until the final reply for `tag`; returns it and the lines that came before it."""
-        before: list[str] = []
+        """Read until the final reply for `tag`; returns it and the lines for that tag before it.
+
+        Lines for other tags are kept, so a later reply() for their tag still finds them."""
         deadline = time.monotonic() + timeout
+        index = 0
         while True:
+            while index < len(self.pending):
+                line = self.pending[index]
+                head = line.split(" ", 2)
+                if head[0] == tag and len(head) > 1 and head[1] in ("OK", "ERR"):
+                    before = [x for x in self.pending[:index] if x.split(" ", 1)[0] == tag]
+                    self.pending = [x for x in self.pending[:index] if x.split(" ", 1)[0] != tag] + \
+                        self.pending[index + 1:]
+                    return line, before
+                index += 1
             left = deadline - time.monotonic()
             if left <= 0:
-                raise TimeoutError(f"no final reply for tag {tag}; got {before[-5:]}")
+                raise TimeoutError(f"no final reply for tag {tag}; got {self.pending[-5:]}")
             line = self.read_line(timeout=left)
             if line.startswith("* EVENT"):
                 self.events.append(line)
-                before.append(line)
                 continue
-            head = line.split(" ", 2)
-            if head[0] == tag and len(head) > 1 and head[1] in ("OK", "ERR"):
-                return line, before
-            before.append(line)
+            self.pending.append(line)
 
     def command(self, line: str, timeout: float = 30.0) -> str:
         """Send one tagged command and return its final reply line."""

@@ -53,11 +53,12 @@ def _target(server: Any, cfg: MovePtuConfig) -> tuple[float, float]:
         if not lo - 1e-9 <= value <= hi + 1e-9:
             raise BadRequest(f"move-ptu: --{name} {value:.2f} is outside the unit's range "
                              f"{lo:.2f}..{hi:.2f} degrees")
-    speed = cfg.speed
-    if speed is not None:
-        top = min(limits.pan_max_speed_deg_s, limits.tilt_max_speed_deg_s)
-        if speed > top:
-            raise BadRequest(f"move-ptu: --speed {speed:g} exceeds the unit's maximum {top:.2f} degrees/s")
+    if cfg.speed is not None:
+        low = max(limits.pan_min_speed_deg_s, limits.tilt_min_speed_deg_s)
+        high = min(limits.pan_max_speed_deg_s, limits.tilt_max_speed_deg_s)
+        if not low <= cfg.speed <= high:
+            raise BadRequest(f"move-ptu: --speed {cfg.speed:g} is outside the unit's speed range "
+                             f"{low:.2f}..{high:.2f} degrees/s")
     return pan, tilt
 
 
@@ -82,7 +83,7 @@ def move_ptu(ctx: JobContext, cfg: MovePtuConfig) -> dict[str, Any]:
     ctx.progress(0, f"moving to pan {pan:.2f} tilt {tilt:.2f} at {speed:g} deg/s")
     driver.move_to(pan, tilt, speed_deg_s=speed)
     deadline = ctx.clock.now() + settings.move_timeout_s
-    last_percent = -1
+    last_percent = 0
     try:
         while True:
             now_pan, now_tilt = device.read_position()
@@ -100,7 +101,11 @@ def move_ptu(ctx: JobContext, cfg: MovePtuConfig) -> dict[str, Any]:
                               f"{settings.move_timeout_s:g} s (at pan {now_pan:.2f} tilt {now_tilt:.2f})")
             ctx.sleep(settings.poll_wall_s * ctx.clock.speed)
     except JobInterrupted:
-        driver.halt()  # stop where it is; the target stays in the recovery set for continue
+        # Stop where it is and wait until it stands, so break answers with the unit at rest; the
+        # target stays in the recovery set for continue.
+        driver.halt()
+        driver.wait_until_stopped(timeout_s=settings.move_timeout_s)
+        device.read_position()
         raise
     final = device.read_position()
     return {"pan": f"{final[0]:.2f}", "tilt": f"{final[1]:.2f}"}
