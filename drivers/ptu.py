@@ -168,11 +168,12 @@ class PtuD46:
     position(), so a status reader is not disturbed. reset() expects them and discards them.
     """
 
-    def __init__(self, url: str, *, name: str = "ptu", clock: SimClock | None = None,
+    def __init__(self, url: str, *, name: str = "ptu", clock: SimClock | None = None, baudrate: int = 9600,
                  reply_timeout_s: float = 4.0, poll_interval_s: float = 0.05,
                  settle_check_s: float = 0.01):
         self.url = url
         self.name = name
+        self._baudrate = baudrate  # the factory default is 9600; the unit can be set to others
         self._clock = clock if clock is not None else SimClock(1.0)
         self._reply_timeout_s = reply_timeout_s
         self._poll_interval_s = poll_interval_s
@@ -207,7 +208,7 @@ class PtuD46:
                 return
             try:
                 self._serial = serial.serial_for_url(
-                    self.url, baudrate=9600, bytesize=8, parity="N", stopbits=1,
+                    self.url, baudrate=self._baudrate, bytesize=8, parity="N", stopbits=1,
                     timeout=_READ_SLICE_S, write_timeout=self._reply_timeout_s)
             except (serial.SerialException, OSError, ValueError) as exc:
                 raise PtuNotResponding(f"cannot open the serial line: {exc}", **self._who) from exc

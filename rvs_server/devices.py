@@ -96,7 +96,8 @@ class PtuDevice(Device):
                 self.url = self._line.path
             else:
                 self.url = self.config.port
-            self.driver = PtuD46(self.url, clock=self.clock, reply_timeout_s=self.config.timeout_s)
+            self.driver = PtuD46(self.url, clock=self.clock, baudrate=self.config.baudrate,
+                                 reply_timeout_s=self.config.timeout_s)
             self.driver.open()
             self._position = self.driver.position()
             self.health, self.last_error = "ok", ""

@@ -66,7 +66,21 @@ def validate_move(server: Any, cfg: MovePtuConfig) -> None:
     _target(server, cfg)
 
 
-@module.job("move-ptu", MovePtuConfig, devices=("ptu",), validate=validate_move)
+def unit_limits(server: Any) -> dict[str, str]:
+    """What the unit itself allows, for help: the Config's bounds are only the outer envelope."""
+    device = server.devices.ptu
+    if device.health != "ok":
+        return {"unit": f"{device.name} is {device.health}"}
+    limits = device.driver.limits
+    low = max(limits.pan_min_speed_deg_s, limits.tilt_min_speed_deg_s)
+    high = min(limits.pan_max_speed_deg_s, limits.tilt_max_speed_deg_s)
+    return {"unit.pan": f"{limits.pan_min_deg:.2f}..{limits.pan_max_deg:.2f}",
+            "unit.tilt": f"{limits.tilt_min_deg:.2f}..{limits.tilt_max_deg:.2f}",
+            "unit.speed": f"{low:.2f}..{high:.2f}",
+            "unit.step": f"{limits.pan_resolution_deg:.4f}"}
+
+
+@module.job("move-ptu", MovePtuConfig, devices=("ptu",), validate=validate_move, limits=unit_limits)
 def move_ptu(ctx: JobContext, cfg: MovePtuConfig) -> dict[str, Any]:
     """Turn the pan-tilt unit to an angle; PROGRESS while it moves."""
     settings: PtuSettings = ctx.settings

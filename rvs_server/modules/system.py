@@ -76,6 +76,8 @@ def help_(call: Call, tokens: tuple[str, ...]) -> dict[str, Any]:
             parts.append(info.description)
         key = name if name in spec.positionals else option_name(name).lstrip("-")
         data[f"opt.{key}"] = "; ".join(parts)
+    if spec.limits is not None:
+        data.update(spec.limits(call.server))
     return data
 
 
