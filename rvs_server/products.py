@@ -1,0 +1,154 @@
+"""Product folders: every result lives in `<data>/products/<name>/` with a `product.json` manifest.
+
+The manifest says what made the product (command, arguments, configuration snapshot, workflow,
+inputs, timings, software version) so anyone can tell where a file came from. Names are client
+given but are names, not paths; an existing product is never overwritten: a second `--output run`
+becomes `run-2`. When devices are simulated, the simulator's truth for that moment goes to a
+`truth/` subfolder, apart from what the sensors saw.
+"""
+from __future__ import annotations
+
+import json
+import os
+import platform
+import re
+import time
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+from . import __version__
+from .protocol import BadRequest, check_safe_name
+
+
+class Product:
+    """One product folder being written; `finish()` writes the manifest last."""
+
+    def __init__(self, path: Path, name: str, command: str, arguments: Mapping[str, Any],
+                 config: Mapping[str, Any] | None = None, job: str | None = None):
+        self.path = path
+        self.name = name
+        self.manifest: dict[str, Any] = {
+            "name": name,
+            "command": command,
+            "arguments": dict(arguments),
+            "config": dict(config or {}),
+            "job": job,
+            "software": {"rvs": __version__, "python": platform.python_version(), "numpy": np.__version__},
+            "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+            "inputs": [],
+            "timings_s": {},
+            "files": {},
+        }
+        manifest = path / "product.json"
+        if manifest.exists():  # a continued job writes on into its own folder
+            previous = json.loads(manifest.read_text())
+            self.manifest["files"] = previous.get("files", {})
+            self.manifest["timings_s"] = previous.get("timings_s", {})
+            self.manifest["created"] = previous.get("created", self.manifest["created"])
+
+    def file(self, relative: str) -> Path:
+        """A path inside the product for `relative` (which may name a subfolder, e.g. truth/x.tif)."""
+        parts = Path(relative).parts
+        if not parts or any(p in ("..", "") or p.startswith(".") for p in parts) or Path(relative).is_absolute():
+            raise ValueError(f"{relative!r} is not a file name inside a product")
+        target = self.path.joinpath(*parts)
+        target.parent.mkdir(parents=True, exist_ok=True)
+        return target
+
+    def add(self, relative: str, description: str) -> Path:
+        """Register a file (written by the caller) with what it holds."""
+        self.manifest["files"][relative] = description
+        return self.file(relative)
+
+    def write_json(self, relative: str, data: Any, description: str) -> Path:
+        target = self.add(relative, description)
+        _atomic_write(target, json.dumps(data, indent=1, default=_jsonable) + "\n")
+        return target
+
+    def timing(self, step: str, seconds: float) -> None:
+        self.manifest["timings_s"][step] = round(float(seconds), 4)
+
+    def note(self, key: str, value: Any) -> None:
+        self.manifest[key] = value
+
+    def finish(self, status: str = "complete") -> Path:
+        self.manifest["status"] = status
+        self.manifest["finished"] = time.strftime("%Y-%m-%dT%H:%M:%S%z")
+        target = self.path / "product.json"
+        _atomic_write(target, json.dumps(self.manifest, indent=1, default=_jsonable) + "\n")
+        return target
+
+
+class Products:
+    """Where products go, and how their names are chosen."""
+
+    def __init__(self, data_dir: Path):
+        self.root = data_dir / "products"
+        self.root.mkdir(parents=True, exist_ok=True)
+
+    def create(self, command: str, name: str | None, arguments: Mapping[str, Any],
+               config: Mapping[str, Any] | None = None, job: str | None = None) -> Product:
+        """A new folder named `name` (or COMMAND-TIME), with a suffix when the name is taken."""
+        base = name or f"{command}-{time.strftime('%Y%m%d-%H%M%S')}"
+        try:
+            check_safe_name(base)
+        except ValueError as exc:
+            raise BadRequest(str(exc)) from None
+        chosen = base
+        for index in range(2, 10000):
+            try:
+                (self.root / chosen).mkdir()
+                break
+            except FileExistsError:
+                chosen = f"{base}-{index}"
+        else:
+            raise BadRequest(f"too many products named {base}")
+        return Product(self.root / chosen, chosen, command, arguments, config, job)
+
+    def reopen(self, name: str, command: str, arguments: Mapping[str, Any],
+               config: Mapping[str, Any] | None = None, job: str | None = None) -> Product:
+        """The folder of an interrupted job, so `continue` finishes the same product."""
+        check_safe_name(name)
+        path = self.root / name
+        path.mkdir(parents=True, exist_ok=True)
+        return Product(path, name, command, arguments, config, job)
+
+    def latest(self, command_pattern: str) -> Product | None:
+        """The most recent complete product made by a command matching the pattern."""
+        pattern = re.compile(command_pattern)
+        best: tuple[float, Path] | None = None
+        for manifest in self.root.glob("*/product.json"):
+            try:
+                data = json.loads(manifest.read_text())
+            except (OSError, ValueError):
+                continue
+            if data.get("status") == "complete" and pattern.fullmatch(data.get("command", "")):
+                mtime = manifest.stat().st_mtime
+                if best is None or mtime > best[0]:
+                    best = (mtime, manifest.parent)
+        if best is None:
+            return None
+        data = json.loads((best[1] / "product.json").read_text())
+        product = Product(best[1], best[1].name, data["command"], data.get("arguments", {}), data.get("config"))
+        product.manifest = data
+        return product
+
+
+def _atomic_write(target: Path, text: str) -> None:
+    tmp = target.with_name(f".{target.name}.tmp")
+    tmp.write_text(text)
+    os.replace(tmp, target)
+
+
+def _jsonable(value: Any) -> Any:
+    if isinstance(value, (np.integer, np.floating)):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, (tuple, set)):
+        return list(value)
+    if isinstance(value, Path):
+        return str(value)
+    raise TypeError(f"{type(value).__name__} is not JSON")
