@@ -167,51 +167,44 @@ def _play(client: Client, line: str, out: Callable[[str], None]) -> RvsRequestEr
 
 def run_mission(client: Client, lines: list[MissionLine], out: Callable[[str], None]) -> MissionReport:
     """Send each line; stop at the first ERR of a line without `-`, or when the connection fails."""
-    report = MissionReport(total=len(lines))
-    for line in lines:
-        out(f"line {line.number}: {_as_written(line)}")
-        report.sent += 1
-        try:
-            error = _play(client, line.command, out)
-        except RvsClientError as exc:  # no connection, no reply: nothing after this can run
-            out(f"line {line.number}: {exc}; mission stopped")
-            report.failures.append(line.number)
-            report.stopped_at = line.number
-            return report
-        if error is None:
-            report.ok += 1
-        elif line.excused:
-            out(f"line {line.number}: failed ({error.code} {error.reason}), excused by '-'; going on")
-            report.excused.append(line.number)
-        else:
-            out(f"line {line.number}: failed ({error.code} {error.reason}); mission stopped")
-            report.failures.append(line.number)
-            report.stopped_at = line.number
-            return report
-    return report
+    return _walk(client, lines, out, checking=False)
 
 
 def check_mission(client: Client, lines: list[MissionLine], out: Callable[[str], None]) -> MissionReport:
     """Send `check LINE` for every line (and nothing else); report every problem with its line."""
+    return _walk(client, lines, out, checking=True)
+
+
+def _walk(client: Client, lines: list[MissionLine], out: Callable[[str], None], checking: bool) -> MissionReport:
+    """Play the lines in order. A run stops at the first unexcused failure; a check goes on, so
+    that it reports every problem at once."""
     report = MissionReport(total=len(lines))
+    failed = "would fail" if checking else "failed"
     for line in lines:
-        out(f"line {line.number}: check {line.command}{'  (excused by -)' if line.excused else ''}")
+        if checking:
+            out(f"line {line.number}: check {line.command}{'  (excused by -)' if line.excused else ''}")
+        else:
+            out(f"line {line.number}: {_as_written(line)}")
         report.sent += 1
         try:
-            error = _play(client, check_line(line.command), out)
-        except RvsClientError as exc:
-            out(f"line {line.number}: {exc}; check stopped")
+            error = _play(client, check_line(line.command) if checking else line.command, out)
+        except RvsClientError as exc:  # no connection, no reply: nothing after this can run
+            out(f"line {line.number}: {exc}; {'check' if checking else 'mission'} stopped")
             report.failures.append(line.number)
             report.stopped_at = line.number
             return report
         if error is None:
             report.ok += 1
         elif line.excused:
-            out(f"line {line.number}: would fail ({error.code} {error.reason}), excused by '-'")
+            going_on = "" if checking else "; going on"
+            out(f"line {line.number}: {failed} ({error.code} {error.reason}), excused by '-'{going_on}")
             report.excused.append(line.number)
         else:
-            out(f"line {line.number}: would fail ({error.code} {error.reason})")
+            out(f"line {line.number}: {failed} ({error.code} {error.reason})" + ("" if checking else "; mission stopped"))
             report.failures.append(line.number)
+            if not checking:
+                report.stopped_at = line.number
+                return report
     return report
 
 
