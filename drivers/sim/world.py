@@ -1,0 +1,294 @@
+"""The simulated world: seeded terrain, rocks, craters and albedo, and its exact ground truth.
+
+`World.build(WorldConfig(...))` generates the rock-free ground on a height grid (1 cm by default),
+turns it into a bounded-error triangle mesh (rtin.py), adds every rock as its own low-poly mesh
+(rocks.py), and keeps those triangles as THE surface: cameras and the time-of-flight camera are
+rendered from it and every truth query is answered on it, so the two cannot disagree. The ground
+grid lies within `mesh_tolerance_m` of the ground mesh.
+
+Frames: world x east, y north, z up, metres; the world is centred on the origin.
+"""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+from . import albedo as albedo_model
+from .config import Sun, WorldConfig
+from .grid import GridSpec, bilinear, remap_bilinear
+from .lighting import in_sunlight
+from .mesh import TriangleSurface, grid_surface_parts
+from .noise import DetailTexture
+from .rocks import ROCK_TABLE_DTYPE, RockMeshes, place_rocks, rock_table
+from .rtin import extract_triangles, vertex_errors
+from .terrain import ground_heights
+
+__all__ = ["World", "WorldConfig", "Sun"]
+
+MESH_BLOCK_CELLS = 256       # RTIN root block: the largest triangle leg, 2.56 m at 1 cm cells
+FILE_FORMAT = "rvs-sim-world/1"
+
+
+def _streams(seed: int) -> dict[str, np.random.Generator]:
+    """Independent random streams per part, so changing the rocks never changes the terrain."""
+    names = ("terrain", "rocks", "albedo", "rock_texture", "detail")
+    return {name: np.random.default_rng([seed, i]) for i, name in enumerate(names)}
+
+
+class World:
+    """A built world: grids, rock table, truth surface, and queries on them.
+
+    Attributes:
+        config: the WorldConfig it was built from.
+        sun: the current sun; set it to relight the scene (geometry does not change).
+        grid: where the generation grid lies (GridSpec).
+        ground: float32 heights of the rock-free ground at the grid points (the ground mesh's source).
+        heights: float32 heights with rocks: where a rock stands above the ground grid, the height of
+            its surface (exact, from the rock meshes), else `ground` (within mesh_tolerance_m of the
+            ground mesh).
+        albedo_grid: float32 albedo of the regolith per grid point (rocks have their own, see albedo_at).
+        rocks: structured array, one row per rock (see rocks.ROCK_TABLE_DTYPE).
+        surface: the truth triangles, ground first, then rocks (TriangleSurface).
+        rock_of_triangle: rock index of each surface triangle, -1 for ground.
+    """
+
+    def __init__(self, config: WorldConfig, grid: GridSpec, ground: np.ndarray, heights: np.ndarray,
+                 albedo_grid: np.ndarray, rocks: np.ndarray, ground_triangles: np.ndarray,
+                 rock_meshes: RockMeshes):
+        self.config = config
+        self.sun = config.sun
+        self.grid = grid
+        self.ground, self.heights, self.albedo_grid, self.rocks = ground, heights, albedo_grid, rocks
+        self.ground_triangles, self.rock_meshes = ground_triangles, rock_meshes
+        self.surface, self.rock_of_triangle = _truth_surface(grid, ground, ground_triangles, rock_meshes)
+        streams = _streams(config.seed)
+        self._detail = DetailTexture(streams["detail"])
+        self._rock_texture = albedo_model.RockTexture(streams["rock_texture"], config.albedo.rock_contrast)
+
+    # ----------------------------------------------------------------------------- building
+    @classmethod
+    def build(cls, config: WorldConfig | None = None) -> "World":
+        """Generate a world from its config: ground, its mesh, rocks until the cover is met, albedo."""
+        config = config or WorldConfig()
+        rng = _streams(config.seed)
+        grid = GridSpec.centred(*config.size_m, config.cell_m, MESH_BLOCK_CELLS)
+        ground = ground_heights(grid, config.terrain, config.craters, rng["terrain"])
+        ground_triangles = extract_triangles(vertex_errors(ground, MESH_BLOCK_CELLS), config.mesh_tolerance_m,
+                                             MESH_BLOCK_CELLS)
+        bodies, meshes, tops = place_rocks(ground, grid, config.rocks, rng["rocks"])
+        heights = ground.copy()
+        heights.ravel()[tops.points] = tops.heights
+        albedo_grid = albedo_model.regolith_albedo(grid, config.albedo, rng["albedo"])
+        rocks = rock_table(bodies, meshes, grid, ground, tops)
+        return cls(config, grid, ground, heights, albedo_grid, rocks, ground_triangles, meshes)
+
+    # ----------------------------------------------------------------------------- save / load
+    def save(self, path: str | Path) -> Path:
+        """Write the world to an .npz file; `World.load` gives back an identical world."""
+        path = Path(path)
+        if path.suffix != ".npz":
+            path = path.with_name(path.name + ".npz")
+        m = self.rock_meshes
+        np.savez(path, format=np.array(FILE_FORMAT), config=np.array(self.config.model_dump_json()),
+                 sun=np.array(self.sun.model_dump_json()), ground=self.ground, heights=self.heights,
+                 albedo=self.albedo_grid, rocks=self.rocks, ground_triangles=self.ground_triangles,
+                 rock_vertices=m.vertices, rock_triangles=m.triangles, rock_of_triangle=m.rock_of_triangle,
+                 rock_of_vertex=m.rock_of_vertex)
+        return path
+
+    @classmethod
+    def load(cls, path: str | Path) -> "World":
+        with np.load(Path(path), allow_pickle=False) as data:
+            if str(data["format"]) != FILE_FORMAT:
+                raise ValueError(f"{path}: not a {FILE_FORMAT} file (format {data['format']})")
+            config = WorldConfig.model_validate_json(str(data["config"]))
+            grid = GridSpec.centred(*config.size_m, config.cell_m, MESH_BLOCK_CELLS)
+            meshes = RockMeshes(data["rock_vertices"], data["rock_triangles"], data["rock_of_triangle"],
+                                data["rock_of_vertex"])
+            world = cls(config, grid, data["ground"], data["heights"], data["albedo"],
+                        data["rocks"].astype(ROCK_TABLE_DTYPE), data["ground_triangles"], meshes)
+            world.sun = Sun.model_validate_json(str(data["sun"]))
+        return world
+
+    # ----------------------------------------------------------------------------- truth queries
+    @property
+    def bounds(self) -> tuple[float, float, float, float]:
+        """(x_min, x_max, y_min, y_max) of the terrain."""
+        return (self.grid.x_min, self.grid.x_max, self.grid.y_min, self.grid.y_max)
+
+    def height_at(self, x, y) -> np.ndarray:
+        """Exact height of the truth surface at world (x, y) (arrays broadcast); NaN off the terrain."""
+        x, y = np.broadcast_arrays(np.asarray(x, np.float64), np.asarray(y, np.float64))
+        triangle = self._triangle_under(x, y)
+        return self.surface.height_on(triangle, x.ravel(), y.ravel()).reshape(x.shape)
+
+    def ground_height_at(self, x, y) -> np.ndarray:
+        """Height of the rock-free ground at (x, y): the reference rock protrusion is measured from
+        (bilinear in the ground grid, within mesh_tolerance_m of the ground mesh); NaN off the terrain."""
+        return bilinear(self.ground, self.grid, x, y)
+
+    def protrusion_at(self, x, y) -> np.ndarray:
+        """How far the truth surface stands above the rock-free ground at (x, y): rock height there,
+        about 0 (within mesh_tolerance_m) on bare ground."""
+        return self.height_at(x, y) - self.ground_height_at(x, y)
+
+    def rock_at(self, x, y) -> np.ndarray:
+        """Index into `rocks` of the rock that is the topmost surface at (x, y); -1 for ground."""
+        x, y = np.broadcast_arrays(np.asarray(x, np.float64), np.asarray(y, np.float64))
+        triangle = self._triangle_under(x, y)
+        return np.where(triangle >= 0, self.rock_of_triangle[np.maximum(triangle, 0)], -1).reshape(x.shape)
+
+    def normal_at(self, x, y) -> np.ndarray:
+        """Unit upward normal (..., 3) of the truth surface at (x, y); NaN off the terrain."""
+        x, y = np.broadcast_arrays(np.asarray(x, np.float64), np.asarray(y, np.float64))
+        triangle = self._triangle_under(x, y)
+        normals = self.surface.face_normals[np.maximum(triangle, 0)].astype(np.float64)
+        normals[triangle < 0] = np.nan
+        return normals.reshape(*x.shape, 3)
+
+    def slope_at(self, x, y, baseline: float = 0.0) -> np.ndarray:
+        """Slope angle in radians at (x, y).
+
+        baseline 0: the slope of the mesh triangle under the point (exact, very local: a rock
+        facet can be steep). baseline b > 0: the slope of the plane through the heights at
+        (x +- b/2, y) and (x, y +- b/2), i.e. the slope over a patch b wide, as a rover feels it.
+        """
+        if baseline <= 0:
+            normal = self.normal_at(x, y)
+            return np.arccos(np.clip(normal[..., 2], -1.0, 1.0))
+        x, y = np.broadcast_arrays(np.asarray(x, np.float64), np.asarray(y, np.float64))
+        half = baseline / 2
+        dz_dx = (self.height_at(x + half, y) - self.height_at(x - half, y)) / baseline
+        dz_dy = (self.height_at(x, y + half) - self.height_at(x, y - half)) / baseline
+        return np.arctan(np.hypot(dz_dx, dz_dy))
+
+    def albedo_at(self, x, y) -> np.ndarray:
+        """Albedo of the topmost surface at (x, y); NaN off the terrain."""
+        x, y = np.broadcast_arrays(np.asarray(x, np.float64), np.asarray(y, np.float64))
+        triangle = self._triangle_under(x, y)
+        z = self.surface.height_on(triangle, x.ravel(), y.ravel())
+        points = np.stack([x.ravel(), y.ravel(), z], axis=1)
+        rock = np.where(triangle >= 0, self.rock_of_triangle[np.maximum(triangle, 0)], -1)
+        albedo = self.albedo_of(points, rock)
+        return np.where(triangle >= 0, albedo, np.float32(np.nan)).reshape(x.shape)
+
+    def albedo_of(self, points: np.ndarray, rock: np.ndarray) -> np.ndarray:
+        """Albedo (float32) at surface points (n, 3) lying on rock `rock` (-1: on the ground).
+
+        Ground: the regolith grid interpolated, times sub-centimetre detail. Rocks: the rock's own
+        albedo times a 3-D mottling. The renderer uses exactly this, so it is the albedo truth of
+        every image.
+        """
+        albedo = np.empty(len(points), dtype=np.float32)
+        on_ground = rock < 0
+        x, y = points[on_ground, 0], points[on_ground, 1]
+        row, col = self.grid.fractional_index(x, y)
+        detail = np.exp(np.float32(self.config.albedo.detail_contrast) * self._detail(x, y))
+        albedo[on_ground] = remap_bilinear(self.albedo_grid, col, row) * detail
+        on_rock = ~on_ground
+        albedo[on_rock] = self.rocks["albedo"][rock[on_rock]] * self._rock_texture(points[on_rock])
+        return albedo
+
+    def in_sunlight(self, points: np.ndarray, normals: np.ndarray, sun: Sun | None = None) -> np.ndarray:
+        """True where surface points (..., 3) with normals (..., 3) see the sun (no cast shadow)."""
+        return in_sunlight(self.surface, np.asarray(points, np.float64), np.asarray(normals, np.float32),
+                           sun or self.sun)
+
+    def height_map(self, cell: float, x_range: tuple[float, float], y_range: tuple[float, float]) -> np.ndarray:
+        """Truth heights at the centres of a cell grid: map[iy, ix] at
+        (x_range[0] + (ix + 0.5) cell, y_range[0] + (iy + 0.5) cell); row 0 is the southern edge."""
+        xs, ys = _cell_centres(cell, x_range), _cell_centres(cell, y_range)
+        return self.height_at(xs[None, :], ys[:, None])
+
+    def obstacle_mask(self, step_height: float, cell: float, x_range: tuple[float, float],
+                      y_range: tuple[float, float]) -> np.ndarray:
+        """Cells in which a rock stands more than `step_height` above the rock-free ground.
+
+        Definition (hazard maps are scored against it): at every generation-grid point (1 cm) the
+        protrusion is the height of the topmost rock surface there minus the height of the rock-free
+        ground (terrain, slope and craters) at the same point, and 0 where no rock is on top. A cell is
+        an obstacle if the largest protrusion at the grid points inside it exceeds step_height.
+        Cell [iy, ix] covers x_range[0] + ix*cell <= x < x_range[0] + (ix+1)*cell and likewise in y;
+        row 0 is the southern edge. Cells must be at least one grid cell wide; cells off the terrain
+        are False. Slopes and crater walls are not obstacles by this definition however steep: score
+        them with slope_at.
+        """
+        if cell < self.grid.cell - 1e-12:
+            raise ValueError(f"cell {cell} m is finer than the world's grid ({self.grid.cell} m)")
+        return self._block_max(self._protrusion, cell, x_range, y_range) > step_height
+
+    def protrusion(self) -> np.ndarray:
+        """Rock protrusion above the rock-free ground at every grid point (float32, 0 off rocks)."""
+        return self.heights - self.ground
+
+    def rock_cover(self) -> float:
+        """Measured cumulative fractional area of rocks: the share of grid points a rock tops."""
+        return float(np.count_nonzero(self.heights > self.ground)) / self.heights.size
+
+    # ----------------------------------------------------------------------------- helpers
+    def _triangle_under(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Topmost triangle over each point; -1 off the terrain. Rays on the terrain's very edge
+        are nudged a micrometre inward, where they cannot slip past the last triangle."""
+        x, y = x.ravel(), y.ravel()
+        inside = self.grid.contains(x, y)
+        edge = 1e-6
+        triangle = self.surface.triangle_under(np.clip(x, self.grid.x_min + edge, self.grid.x_max - edge),
+                                               np.clip(y, self.grid.y_min + edge, self.grid.y_max - edge))
+        return np.where(inside, triangle, -1)
+
+    def _protrusion(self, rows: slice, cols: slice) -> np.ndarray:
+        return self.heights[rows, cols] - self.ground[rows, cols]
+
+    def _block_max(self, values_of, cell: float, x_range, y_range) -> np.ndarray:
+        """Max of a per-grid-point quantity over each output cell; -inf where a cell has no point."""
+        nx, ny = _cell_count(cell, x_range), _cell_count(cell, y_range)
+        out = np.full((ny, nx), -np.inf)
+        col_idx, cols = _points_in_cells(self.grid.x_min, self.grid.cell, self.grid.cols, x_range[0], cell, nx)
+        row_idx, rows = _points_in_cells(self.grid.y_min, self.grid.cell, self.grid.rows, y_range[0], cell, ny)
+        if cols is None or rows is None:
+            return out
+        values = values_of(rows, cols)
+        col_starts, col_cells = _run_starts(col_idx)
+        row_starts, row_cells = _run_starts(row_idx)
+        reduced = np.maximum.reduceat(np.maximum.reduceat(values, col_starts, axis=1), row_starts, axis=0)
+        out[np.ix_(row_cells, col_cells)] = reduced
+        return out
+
+
+def _cell_count(cell: float, value_range: tuple[float, float]) -> int:
+    return max(0, int(math.ceil((value_range[1] - value_range[0]) / cell - 1e-9)))
+
+
+def _cell_centres(cell: float, value_range: tuple[float, float]) -> np.ndarray:
+    return value_range[0] + (np.arange(_cell_count(cell, value_range)) + 0.5) * cell
+
+
+def _points_in_cells(origin: float, spacing: float, cells: int, start: float, cell: float, count: int):
+    """Output-cell index of each grid point that falls in [start, start + count*cell), and their slice."""
+    first = max(0, int(math.ceil((start - origin) / spacing - 1e-9)))
+    last = min(cells, int(math.ceil((start + count * cell - origin) / spacing - 1e-9)) - 1)
+    if last < first:
+        return None, None
+    coords = origin + np.arange(first, last + 1) * spacing
+    index = np.floor((coords - start) / cell + 1e-9).astype(np.int64)
+    keep = (index >= 0) & (index < count)
+    index = index[keep]
+    first += int(np.argmax(keep))
+    return index, slice(first, first + len(index))
+
+
+def _run_starts(index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Where each run of equal (sorted) cell indices starts, and which cell each run is."""
+    starts = np.flatnonzero(np.r_[True, index[1:] != index[:-1]])
+    return starts, index[starts]
+
+
+def _truth_surface(grid: GridSpec, ground: np.ndarray, ground_triangles: np.ndarray, rock_meshes: RockMeshes):
+    """One triangle set, ground mesh first and rocks after, and each triangle's rock (-1: ground)."""
+    vertices, triangles = grid_surface_parts(grid, ground, ground_triangles)
+    surface = TriangleSurface(np.concatenate([vertices, rock_meshes.vertices]),
+                              np.concatenate([triangles.astype(np.int64), rock_meshes.triangles + len(vertices)]))
+    rock_of_triangle = np.concatenate([np.full(len(triangles), -1, np.int32), rock_meshes.rock_of_triangle])
+    return surface, rock_of_triangle
