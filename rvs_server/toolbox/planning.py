@@ -1,0 +1,150 @@
+"""Path planning for the rover (thesis 3.1.7, 3.3.1, 4.4): from a fused map to straight-line waypoints.
+
+`plan_path` is the method, step by step: grow the hazards by the rover's size, cost the ground,
+give unknown cells their policy's cost, search the exact least-cost path with A*, and cut it into
+straight segments that keep clear of hazards. The steps live in small modules:
+
+    planning_costs   terrain cost, hazard inflation, soft cost near hazards, unknown-cell policy
+    planning_search  the path metric, A* and its Dijkstra reference
+    planning_fusion  planning maps and the fusion of a global map with local maps
+    planning_paths   world <-> cells, straight segments, the drivable part inside the local map
+
+Fusing the maps comes before `plan_path` and cutting the path at the local map's border after it;
+the navigate loop calls them.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .planning_costs import (UNKNOWN_POLICIES, InflatedHazards, UnknownPolicy, apply_unknown_policy,
+                             inflate_hazards, proximity_cost, terrain_cost)
+from .planning_fusion import MapLayers, blank_map, blank_map_spanning, fuse_maps, resample_onto
+from .planning_paths import (DrivablePrefix, cells_to_world, distance_to_border, douglas_peucker,
+                             drivable_prefix, path_length, segment_cells, segment_is_clear, simplify_path,
+                             world_to_cells)
+from .planning_search import SearchResult, astar, dijkstra_reference, path_cost
+
+__all__ = [
+    "PlanningParams", "PlanResult", "plan_path", "planning_cost",
+    "terrain_cost", "inflate_hazards", "InflatedHazards", "proximity_cost", "apply_unknown_policy",
+    "UnknownPolicy", "UNKNOWN_POLICIES",
+    "astar", "dijkstra_reference", "path_cost", "SearchResult",
+    "MapLayers", "blank_map", "blank_map_spanning", "resample_onto", "fuse_maps",
+    "cells_to_world", "world_to_cells", "path_length", "douglas_peucker", "segment_cells",
+    "segment_is_clear", "simplify_path", "distance_to_border", "drivable_prefix", "DrivablePrefix",
+]
+
+
+@dataclass(frozen=True)
+class PlanningParams:
+    weight: float = 0.5                 # w: 1 = shortest path, 0 = cheapest ground (thesis used 0.4 and 0.7)
+    rover_radius_m: float = 0.3         # hazards grow by radius + margin: the path is for the rover's centre
+    hazard_margin_m: float = 0.1
+    proximity_falloff_m: float = 0.0    # soft cost reaches 0 this far beyond the grown hazards; 0 = off
+    proximity_cost: float = 0.5         # soft cost at the grown hazards' edge, added to the terrain cost
+    unknown_policy: UnknownPolicy = "penalize"
+    unknown_cost: float = 0.5           # cost of an unknown cell under "penalize"
+    max_deviation_m: float = 0.1        # straight segments stay this close to the A* path
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.weight <= 1.0:
+            raise ValueError(f"weight must be in [0, 1], got {self.weight!r}")
+        for name in ("rover_radius_m", "hazard_margin_m", "proximity_falloff_m", "proximity_cost",
+                     "unknown_cost", "max_deviation_m"):
+            if not getattr(self, name) >= 0:
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)!r}")
+        if self.unknown_policy not in UNKNOWN_POLICIES:
+            raise ValueError(f"unknown_policy must be one of {', '.join(UNKNOWN_POLICIES)}, "
+                             f"got {self.unknown_policy!r}")
+
+    @property
+    def clearance_m(self) -> float:
+        return self.rover_radius_m + self.hazard_margin_m
+
+
+@dataclass(frozen=True)
+class PlanResult:
+    found: bool
+    reason: str                 # "" when found; else start_outside_map, goal_outside_map,
+    message: str                # start_blocked, goal_blocked or unreachable, and a sentence saying why
+    cells: np.ndarray           # (K, 2) A* cell path (row, col), start to goal
+    waypoint_cells: np.ndarray  # (M, 2) the cells kept as waypoints
+    waypoints: np.ndarray       # (M, 2) world (x, y) of the waypoints, at cell centres
+    cost: float                 # A* path cost on the planning metric; inf without a path
+    length_m: float             # A* path length; inf without a path
+    cost_grid: np.ndarray = field(repr=False)  # what A* searched: +inf where blocked
+    hazards: InflatedHazards = field(repr=False)
+
+
+def plan_path(planning_map: MapLayers, start_xy: tuple[float, float], goal_xy: tuple[float, float],
+              params: PlanningParams = PlanningParams()) -> PlanResult:
+    """The least-cost safe path from start to goal (world x, y) on a planning map, as waypoints."""
+    spec = planning_map.spec
+    # Grow the hazards by the rover's radius plus a margin.
+    hazards = inflate_hazards(planning_map.hazard, spec.cell, params.clearance_m)
+    # Cost the ground: terrain, unknown cells by policy, the soft cost near hazards; grown hazards block.
+    cost = planning_cost(planning_map, hazards, params)
+    # Refuse, with the reason, a start or goal off the map or on a blocked cell.
+    refusal = refuse_endpoints(planning_map, hazards, cost, start_xy, goal_xy, params)
+    if refusal:
+        return _no_path(*refusal, cost, hazards)
+    # A*: the exact least-cost 8-connected path.
+    start, goal = world_to_cells(spec, np.array([start_xy, goal_xy], dtype=np.float64))[0]
+    search = astar(cost, tuple(start), tuple(goal), params.weight, spec.cell)
+    if not search.found:
+        blockers = "hazards or unknown cells" if params.unknown_policy == "forbid" else "hazards"
+        return _no_path("unreachable", f"no path from ({start_xy[0]:g}, {start_xy[1]:g}) to "
+                        f"({goal_xy[0]:g}, {goal_xy[1]:g}): {blockers} (grown by "
+                        f"{params.clearance_m:.2f} m) close every way", cost, hazards)
+    # Straight segments close to the path and clear of every blocked cell.
+    keep = simplify_path(search.cells, np.isinf(cost), params.max_deviation_m / spec.cell)
+    return PlanResult(found=True, reason="", message="", cells=search.cells,
+                      waypoint_cells=search.cells[keep], waypoints=cells_to_world(spec, search.cells[keep]),
+                      cost=search.cost, length_m=path_length(cells_to_world(spec, search.cells)),
+                      cost_grid=cost, hazards=hazards)
+
+
+def planning_cost(planning_map: MapLayers, hazards: InflatedHazards, params: PlanningParams) -> np.ndarray:
+    """The grid A* searches: terrain cost, unknown cells' cost, soft cost near hazards; +inf where blocked."""
+    ground = np.where(planning_map.hazard, 0.0, planning_map.cost)  # hazards are blocked below anyway
+    cost = apply_unknown_policy(ground, planning_map.unknown, params.unknown_policy, params.unknown_cost)
+    cost = cost + params.proximity_cost * proximity_cost(hazards.distance_m, hazards.clearance_m,
+                                                         params.proximity_falloff_m)
+    return np.where(hazards.mask, np.inf, cost)
+
+
+def refuse_endpoints(planning_map: MapLayers, hazards: InflatedHazards, cost: np.ndarray,
+                     start_xy: tuple[float, float], goal_xy: tuple[float, float],
+                     params: PlanningParams) -> tuple[str, str] | None:
+    """(reason, sentence) if the start or the goal is off the map or on a blocked cell, else None."""
+    spec = planning_map.spec
+    cells, inside = world_to_cells(spec, np.array([start_xy, goal_xy], dtype=np.float64))
+    for name, point, cell, on_map in zip(("start", "goal"), (start_xy, goal_xy), cells, inside):
+        where = f"{name} ({point[0]:g}, {point[1]:g})"
+        if not on_map:
+            (x0, x1), (y0, y1) = spec.x_range, spec.y_range
+            extent = f"x {x0:g}..{x1:g} m, y {y0:g}..{y1:g} m"
+            return f"{name}_outside_map", f"{where} is outside the map ({extent})"
+        if np.isinf(cost[cell[0], cell[1]]):
+            why = _why_blocked(planning_map, hazards, (cell[0], cell[1]), params)
+            return f"{name}_blocked", f"{where} {why}"
+    return None
+
+
+def _why_blocked(planning_map: MapLayers, hazards: InflatedHazards, cell: tuple[int, int],
+                 params: PlanningParams) -> str:
+    if planning_map.hazard[cell]:
+        return "is on a hazard"
+    if hazards.mask[cell]:
+        return (f"is {hazards.distance_m[cell]:.2f} m from a hazard, within the rover's clearance of "
+                f"{params.clearance_m:.2f} m (radius {params.rover_radius_m:g} m + margin "
+                f"{params.hazard_margin_m:g} m)")
+    return "is on an unknown cell and the unknown-cell policy is 'forbid'"
+
+
+def _no_path(reason: str, message: str, cost: np.ndarray, hazards: InflatedHazards) -> PlanResult:
+    empty_cells = np.zeros((0, 2), dtype=np.int64)
+    return PlanResult(False, reason, message, empty_cells, empty_cells, np.zeros((0, 2)),
+                      float("inf"), float("inf"), cost, hazards)

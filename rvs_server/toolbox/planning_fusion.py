@@ -1,0 +1,127 @@
+"""Planning maps and their fusion: a global map with the rover's local maps laid over it.
+
+A planning map is three layers on one GridSpec: the terrain cost of each cell (see planning_costs),
+the hazard mask, and the mask of cells nobody has seen. Local maps come at their own cell sizes and
+are resampled onto the global grid. The fusion is conservative, the worst of what any map says:
+
+  - hazard: a global cell is a hazard if any map has a hazard anywhere in the area it covers;
+  - cost: the largest cost any map gives to any part of the cell's area;
+  - unknown: a cell stays unknown only while no map knows any part of it.
+
+So a local map can add hazards and raise costs but never clear a global hazard; where the maps
+disagree, the rover takes the safer reading. Without a global map, a blank one (all unknown) spans
+the start, the goal and the local maps, with a margin, as in the thesis's `navigate`.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+
+from .grid import GridSpec
+
+# Overlaps thinner than this fraction of a cell are shared edges, not coverage.
+EDGE_TOLERANCE = 1e-9
+
+
+@dataclass(frozen=True)
+class MapLayers:
+    """Cost, hazard and unknown layers over one grid. Hazard cells cost +inf and count as known;
+    unknown cells cost NaN (their cost is the unknown policy's to give)."""
+
+    spec: GridSpec
+    cost: np.ndarray
+    hazard: np.ndarray
+    unknown: np.ndarray
+
+    def __post_init__(self) -> None:
+        cost = np.asarray(self.cost, dtype=np.float64)
+        hazard = np.asarray(self.hazard, dtype=bool)
+        unknown = np.asarray(self.unknown, dtype=bool) & ~hazard
+        for name, layer in (("cost", cost), ("hazard", hazard), ("unknown", unknown)):
+            if layer.shape != self.spec.shape:
+                raise ValueError(f"{name} layer is {layer.shape}, the grid is {self.spec.shape}")
+        known = ~unknown & ~hazard
+        if np.isnan(cost[known]).any():
+            raise ValueError("known cells hold NaN cost; mark them unknown")
+        if (cost[known] < 0).any():
+            raise ValueError("costs must be >= 0")
+        object.__setattr__(self, "cost", np.where(hazard, np.inf, np.where(unknown, np.nan, cost)))
+        object.__setattr__(self, "hazard", hazard)
+        object.__setattr__(self, "unknown", unknown)
+
+    @classmethod
+    def from_cost(cls, spec: GridSpec, cost: np.ndarray, hazard: np.ndarray | None = None) -> "MapLayers":
+        """Layers from a cost grid whose NaN cells are unknown."""
+        cost = np.asarray(cost, dtype=np.float64)
+        hazard = np.zeros(cost.shape, dtype=bool) if hazard is None else hazard
+        return cls(spec, cost, hazard, np.isnan(cost))
+
+
+def blank_map(spec: GridSpec) -> MapLayers:
+    """A map of nothing known: every cell unknown, no hazards."""
+    return MapLayers(spec, np.full(spec.shape, np.nan), np.zeros(spec.shape, bool), np.ones(spec.shape, bool))
+
+
+def blank_map_spanning(start_xy: Sequence[float], goal_xy: Sequence[float], cell: float, margin_m: float,
+                       local_maps: Sequence[MapLayers] = ()) -> MapLayers:
+    """A blank global map covering start, goal and the local maps, `margin_m` wider on every side."""
+    xs = [start_xy[0], goal_xy[0]] + [x for m in local_maps for x in m.spec.x_range]
+    ys = [start_xy[1], goal_xy[1]] + [y for m in local_maps for y in m.spec.y_range]
+    spec = GridSpec.covering((min(xs) - margin_m, max(xs) + margin_m),
+                             (min(ys) - margin_m, max(ys) + margin_m), cell)
+    return blank_map(spec)
+
+
+def overlap_ranges(src_origin: float, src_cell: float, src_count: int,
+                   dst_origin: float, dst_cell: float) -> tuple[np.ndarray, np.ndarray]:
+    """Along one axis: for each source cell, the first and last destination cell its extent overlaps."""
+    low = (src_origin + np.arange(src_count) * src_cell - dst_origin) / dst_cell
+    high = low + src_cell / dst_cell
+    first = np.floor(low + EDGE_TOLERANCE).astype(np.int64)
+    last = np.ceil(high - EDGE_TOLERANCE).astype(np.int64) - 1
+    return first, last
+
+
+def resample_onto(local: MapLayers, target: GridSpec) -> MapLayers:
+    """A local map on another grid: per target cell, any hazard, the max known cost, unknown if none known.
+
+    Each local cell is spread over every target cell its square overlaps, whichever grid is finer."""
+    row_first, row_last = overlap_ranges(local.spec.origin_y, local.spec.cell, local.spec.rows,
+                                         target.origin_y, target.cell)
+    col_first, col_last = overlap_ranges(local.spec.origin_x, local.spec.cell, local.spec.cols,
+                                         target.origin_x, target.cell)
+    cost = np.full(target.shape, -np.inf)
+    hazard = np.zeros(target.shape, dtype=bool)
+    known = np.zeros(target.shape, dtype=bool)
+    local_known = ~local.unknown & ~local.hazard
+    for row_step in range(int((row_last - row_first).max()) + 1):
+        rows = row_first + row_step
+        row_ok = (rows <= row_last) & (rows >= 0) & (rows < target.rows)
+        for col_step in range(int((col_last - col_first).max()) + 1):
+            cols = col_first + col_step
+            col_ok = (cols <= col_last) & (cols >= 0) & (cols < target.cols)
+            inside = row_ok[:, None] & col_ok[None, :]
+            target_rows = np.broadcast_to(rows[:, None], inside.shape)
+            target_cols = np.broadcast_to(cols[None, :], inside.shape)
+            spread = inside & local.hazard
+            hazard[target_rows[spread], target_cols[spread]] = True
+            spread = inside & local_known
+            np.maximum.at(cost, (target_rows[spread], target_cols[spread]), local.cost[spread])
+            known[target_rows[spread], target_cols[spread]] = True
+    return MapLayers(target, np.where(known, cost, np.nan), hazard, ~known)
+
+
+def fuse_maps(global_map: MapLayers, local_maps: Sequence[MapLayers]) -> MapLayers:
+    """The global map with every local map resampled onto it, by the conservative rule above."""
+    spec = global_map.spec
+    cost = np.where(global_map.unknown, -np.inf, global_map.cost)
+    hazard = global_map.hazard.copy()
+    unknown = global_map.unknown.copy()
+    for local in local_maps:
+        part = resample_onto(local, spec)
+        hazard |= part.hazard
+        cost = np.maximum(cost, np.where(part.unknown, -np.inf, part.cost))
+        unknown &= part.unknown
+    return MapLayers(spec, np.where(unknown, np.nan, cost), hazard, unknown)

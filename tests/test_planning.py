@@ -1,0 +1,456 @@
+"""Tests of the path planner (rvs_server/toolbox/planning*.py): exactness of A* against a Dijkstra
+reference, the metric, hazard inflation, unknown-cell policies, map fusion, straight segments,
+the drivable prefix, and the reasons given when there is no path."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from rvs_server.toolbox.grid import GridSpec
+from rvs_server.toolbox.planning import (MapLayers, PlanningParams, apply_unknown_policy, astar,
+                                         blank_map_spanning, cells_to_world, dijkstra_reference,
+                                         distance_to_border, douglas_peucker, drivable_prefix, fuse_maps,
+                                         inflate_hazards, path_cost, path_length, plan_path, proximity_cost,
+                                         resample_onto, segment_cells, segment_is_clear, simplify_path,
+                                         terrain_cost, world_to_cells)
+from rvs_server.toolbox.planning_search import ASTAR_SLACK
+
+SQRT2 = math.sqrt(2.0)
+
+
+def random_cost_grid(rng: np.random.Generator, rows: int, cols: int, obstacle_density: float,
+                     cost_scale: float) -> np.ndarray:
+    cost = rng.random((rows, cols)) * cost_scale
+    cost[rng.random((rows, cols)) < obstacle_density] = np.inf
+    return cost
+
+
+def assert_valid_path(cells: np.ndarray, cost: np.ndarray, start, goal) -> None:
+    assert tuple(cells[0]) == tuple(start) and tuple(cells[-1]) == tuple(goal)
+    steps = np.abs(np.diff(cells, axis=0))
+    assert (steps.max(axis=1) == 1).all(), "consecutive cells must be distinct 8-neighbours"
+    assert np.isfinite(cost[cells[:, 0], cells[:, 1]]).all(), "the path enters a blocked cell"
+
+
+# --- A*: exact, on one metric ---------------------------------------------------------------------
+
+@settings(max_examples=400, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(rows=st.integers(1, 40), cols=st.integers(1, 40), seed=st.integers(0, 2**32 - 1),
+       obstacle_density=st.sampled_from([0.0, 0.1, 0.3, 0.5]),
+       cost_scale=st.sampled_from([0.0, 1.0, 5.0]),
+       weight=st.one_of(st.just(0.0), st.just(1.0), st.floats(0.0, 1.0)),
+       cell=st.sampled_from([0.05, 1.0, 0.3]),
+       slack=st.sampled_from([0.0, ASTAR_SLACK, math.inf]),
+       data=st.data())
+def test_astar_cost_equals_dijkstra_reference(rows, cols, seed, obstacle_density, cost_scale, weight, cell,
+                                              slack, data):
+    rng = np.random.default_rng(seed)
+    cost = random_cost_grid(rng, rows, cols, obstacle_density, cost_scale)
+    start = (data.draw(st.integers(0, rows - 1)), data.draw(st.integers(0, cols - 1)))
+    goal = (data.draw(st.integers(0, rows - 1)), data.draw(st.integers(0, cols - 1)))
+
+    result = astar(cost, start, goal, weight, cell, slack=slack)
+    reference = dijkstra_reference(cost, start, goal, weight, cell)
+
+    if math.isinf(reference):
+        assert not result.found and len(result.cells) == 0
+        return
+    assert result.cost == pytest.approx(reference, rel=0, abs=1e-9)
+    assert_valid_path(result.cells, cost, start, goal)
+    assert path_cost(result.cells, cost, weight, cell) == pytest.approx(result.cost, rel=0, abs=1e-12)
+
+
+@pytest.mark.parametrize("weight", [0.0, 0.25, 1.0])
+def test_astar_matches_reference_on_full_size_grids(weight):
+    rng = np.random.default_rng(int(weight * 100))
+    for _ in range(8):
+        cost = random_cost_grid(rng, 40, 40, obstacle_density=0.2, cost_scale=2.0)
+        start, goal = tuple(rng.integers(0, 40, 2)), tuple(rng.integers(0, 40, 2))
+        cost[start] = cost[goal] = 0.5
+        result = astar(cost, start, goal, weight, 0.1)
+        reference = dijkstra_reference(cost, start, goal, weight, 0.1)
+        assert result.cost == pytest.approx(reference, rel=0, abs=1e-9)
+
+
+def test_straight_line_on_an_empty_grid():
+    cost = np.zeros((11, 30))
+    result = astar(cost, (5, 2), (5, 27), weight=0.5, cell=0.1)
+    assert (result.cells[:, 0] == 5).all() and len(result.cells) == 26
+    assert result.cost == pytest.approx(0.5 * 25 * 0.1, abs=1e-12)  # w per metre on zero-cost ground
+    assert len(simplify_path(result.cells, np.isinf(cost), 0.5)) == 2
+
+
+def test_diagonal_step_costs_sqrt2():
+    cost = np.full((20, 20), 0.4)
+    result = astar(cost, (0, 0), (12, 12), weight=0.3, cell=0.2)
+    per_metre = 0.3 + 0.7 * 0.4
+    assert len(result.cells) == 13 and (result.cells[:, 0] == result.cells[:, 1]).all()
+    assert result.cost == pytest.approx(12 * SQRT2 * 0.2 * per_metre, abs=1e-12)
+    assert path_cost(np.array([[0, 0], [1, 1]]), cost, 1.0, 1.0) == pytest.approx(SQRT2)
+    assert path_cost(np.array([[0, 0], [0, 1]]), cost, 1.0, 1.0) == pytest.approx(1.0)
+
+
+def test_edge_cost_is_the_mean_of_the_two_cells():
+    cost = np.array([[0.0, 1.0]])
+    assert path_cost(np.array([[0, 0], [0, 1]]), cost, weight=0.0, cell=2.0) == pytest.approx(1.0)
+
+
+def test_weight_trades_distance_for_ground():
+    cost = np.ones((21, 21))
+    cost[:, 0] = cost[20, :] = 0.0  # a free road round two sides
+    detour = astar(cost, (0, 0), (20, 20), weight=0.0)
+    direct = astar(cost, (0, 0), (20, 20), weight=1.0)
+    assert detour.cost == pytest.approx(0.0) and (detour.cells[:, 1] == 0).sum() > 10
+    assert direct.cost == pytest.approx(20 * SQRT2) and len(direct.cells) == 21
+
+
+def test_astar_rejects_bad_input():
+    with pytest.raises(ValueError, match="NaN"):
+        astar(np.full((3, 3), np.nan), (0, 0), (2, 2), 0.5)
+    with pytest.raises(ValueError, match="negative"):
+        astar(-np.ones((3, 3)), (0, 0), (2, 2), 0.5)
+    with pytest.raises(ValueError, match="weight"):
+        astar(np.ones((3, 3)), (0, 0), (2, 2), 1.5)
+    with pytest.raises(ValueError, match="outside"):
+        astar(np.ones((3, 3)), (0, 0), (3, 2), 0.5)
+    with pytest.raises(ValueError, match="8-connected"):
+        path_cost(np.array([[0, 0], [0, 2]]), np.ones((3, 3)), 0.5, 1.0)
+
+
+def test_free_ground_at_zero_weight_costs_nothing():
+    result = astar(np.zeros((5, 9)), (0, 0), (4, 8), weight=0.0)
+    assert result.found and result.cost == 0.0
+    assert dijkstra_reference(np.zeros((5, 9)), (0, 0), (4, 8), 0.0) == 0.0
+
+
+def test_astar_start_equals_goal_and_blocked_endpoints():
+    cost = np.zeros((4, 4))
+    cost[3, 3] = np.inf
+    assert astar(cost, (1, 1), (1, 1), 0.5).cost == 0.0
+    assert not astar(cost, (0, 0), (3, 3), 0.5).found
+
+
+# --- costs -----------------------------------------------------------------------------------------
+
+def test_terrain_cost_takes_the_worse_of_slope_and_roughness():
+    slope = np.array([[0.0, 0.1, 0.4, np.nan]])
+    roughness = np.array([[0.02, 0.0, 0.0, 0.0]])
+    cost = terrain_cost(slope, 0.2, roughness, 0.04)
+    assert cost[0, :3] == pytest.approx([0.5, 0.5, 1.0])  # over the limit clips to 1
+    assert np.isnan(cost[0, 3])
+    with pytest.raises(ValueError):
+        terrain_cost(slope, 0.0)
+
+
+def test_inflation_grows_hazards_by_the_clearance():
+    hazard = np.zeros((21, 21), dtype=bool)
+    hazard[10, 10] = True
+    inflated = inflate_hazards(hazard, cell=0.1, clearance_m=0.25)
+    rows, cols = np.nonzero(inflated.mask)
+    assert ((rows - 10) ** 2 + (cols - 10) ** 2 <= 2.5 ** 2).all() and len(rows) == 21  # lattice disk r = 2.5
+    assert inflated.distance_m[10, 13] == pytest.approx(0.3)
+    assert inflated.distance_m[10, 10] == 0.0
+    # An exact multiple of the cell size is inside despite 3 * 0.1 != 0.3 in floating point.
+    assert inflate_hazards(hazard, 0.1, 0.3).mask[10, 13]
+    assert not inflate_hazards(np.zeros((3, 3), bool), 0.1, 0.3).mask.any()
+
+
+def test_proximity_cost_falls_off_beyond_the_clearance():
+    distance = np.array([0.0, 0.4, 0.5, 0.6, 1.0])
+    assert proximity_cost(distance, 0.4, 0.2) == pytest.approx([1.0, 1.0, 0.5, 0.0, 0.0])
+    assert not proximity_cost(distance, 0.4, 0.0).any()
+
+
+def test_proximity_cost_keeps_paths_off_hazards():
+    spec = GridSpec(0.0, 0.0, 0.1, 30, 60)
+    hazard = np.zeros(spec.shape, dtype=bool)
+    hazard[:14, 30] = True  # a wall from the south edge, the path goes round its end
+    layers = MapLayers(spec, np.zeros(spec.shape), hazard, np.zeros(spec.shape, bool))
+    tight = plan_path(layers, (0.5, 0.5), (5.5, 0.5), PlanningParams(rover_radius_m=0.2, hazard_margin_m=0.0))
+    wide = plan_path(layers, (0.5, 0.5), (5.5, 0.5),
+                     PlanningParams(rover_radius_m=0.2, hazard_margin_m=0.0, proximity_falloff_m=0.5,
+                                    proximity_cost=1.0))
+    def closest_approach(result):
+        return result.hazards.distance_m[result.cells[:, 0], result.cells[:, 1]].min()
+
+    assert closest_approach(tight) < 0.25 < closest_approach(wide)
+    assert wide.length_m > tight.length_m
+
+
+def test_unknown_policies():
+    cost = np.zeros((3, 3))
+    unknown = np.zeros((3, 3), dtype=bool)
+    unknown[1, 1] = True
+    assert apply_unknown_policy(cost, unknown, "forbid")[1, 1] == np.inf
+    assert apply_unknown_policy(cost, unknown, "allow")[1, 1] == 0.0
+    assert apply_unknown_policy(cost, unknown, "penalize", 0.7)[1, 1] == 0.7
+    with pytest.raises(ValueError, match="policy"):
+        apply_unknown_policy(cost, unknown, "ignore")
+
+
+def test_unknown_policies_in_planning():
+    spec = GridSpec(0.0, 0.0, 1.0, 9, 20)
+    cost = np.zeros(spec.shape)
+    cost[:, 8:12] = np.nan  # an unseen band across the map but for a known gap in the north
+    cost[8, 8:12] = 0.0
+    layers = MapLayers.from_cost(spec, cost)
+    start, goal = (2.5, 0.5), (17.5, 0.5)
+    base = dict(weight=0.5, rover_radius_m=0.0, hazard_margin_m=0.0)
+    allow = plan_path(layers, start, goal, PlanningParams(unknown_policy="allow", **base))
+    forbid = plan_path(layers, start, goal, PlanningParams(unknown_policy="forbid", **base))
+    penalize = plan_path(layers, start, goal,
+                         PlanningParams(unknown_policy="penalize", unknown_cost=1.0, **base))
+    assert allow.cost == pytest.approx(0.5 * 15) and (allow.cells[:, 0] == 0).all()  # straight through
+    assert (forbid.cells[:, 0] == 8).any() and forbid.cost > allow.cost  # round by the known gap
+    assert allow.cost < penalize.cost <= forbid.cost
+    cost[8, 8:12] = np.nan
+    closed = plan_path(MapLayers.from_cost(spec, cost), start, goal,
+                       PlanningParams(unknown_policy="forbid", **base))
+    assert closed.reason == "unreachable" and "unknown" in closed.message
+
+
+# --- fusion ----------------------------------------------------------------------------------------
+
+def test_fusion_of_a_coarse_global_map_with_a_fine_local_map():
+    global_spec = GridSpec(0.0, 0.0, 0.5, 4, 4)
+    global_cost = np.full(global_spec.shape, 0.2)
+    global_cost[3, :] = np.nan  # the north row is unknown to the global map
+    global_hazard = np.zeros(global_spec.shape, dtype=bool)
+    global_hazard[0, 3] = True
+    global_map = MapLayers.from_cost(global_spec, global_cost, global_hazard)
+
+    local_spec = GridSpec(0.5, 0.5, 0.1, 10, 10)  # covers global cells rows 1-2, cols 1-2 exactly
+    local_cost = np.full(local_spec.shape, 0.1)
+    local_cost[0, 0] = 0.9       # one steep fine cell inside global cell (1, 1)
+    local_cost[5:, 5:] = np.nan  # the local map has not seen global cell (2, 2)
+    local_hazard = np.zeros(local_spec.shape, dtype=bool)
+    local_hazard[3, 7] = True    # one small rock inside global cell (1, 2)
+    local_map = MapLayers.from_cost(local_spec, local_cost, local_hazard)
+
+    fused = fuse_maps(global_map, [local_map])
+    assert fused.hazard[1, 2] and fused.hazard[0, 3] and fused.hazard.sum() == 2  # any hazard wins
+    assert fused.cost[1, 1] == pytest.approx(0.9)  # the max over the covered area
+    assert fused.cost[2, 1] == pytest.approx(0.2)  # max(global 0.2, local 0.1)
+    assert fused.cost[2, 2] == pytest.approx(0.2)  # only the global map knows it
+    assert fused.unknown[3, :].all() and fused.unknown.sum() == 4
+
+
+def test_local_map_fills_unknown_global_cells_and_overhanging_parts_are_dropped():
+    global_map = blank_map_spanning((0.0, 0.0), (2.0, 1.0), cell=0.5, margin_m=0.0)
+    local_spec = GridSpec(1.5, 0.5, 0.25, 4, 4)  # hangs 0.5 m over the east edge
+    local_map = MapLayers.from_cost(local_spec, np.full(local_spec.shape, 0.3))
+    fused = fuse_maps(global_map, [local_map])
+    assert fused.spec.shape == (2, 4)
+    assert not fused.unknown[1, 3] and fused.cost[1, 3] == pytest.approx(0.3)
+    assert fused.unknown.sum() == 7
+
+
+def test_coarse_local_map_spreads_over_fine_cells():
+    local_spec = GridSpec(0.0, 0.0, 1.0, 2, 2)
+    local_hazard = np.array([[False, False], [False, True]])
+    local_map = MapLayers.from_cost(local_spec, np.array([[0.1, 0.2], [0.3, np.nan]]), local_hazard)
+    fine = resample_onto(local_map, GridSpec(0.0, 0.0, 0.25, 8, 8))
+    assert fine.hazard[4:, 4:].all() and fine.hazard.sum() == 16
+    assert fine.cost[:4, 4:] == pytest.approx(np.full((4, 4), 0.2))
+    assert not fine.unknown.any()
+    # A cell straddling two coarse cells takes the larger cost.
+    shifted = resample_onto(local_map, GridSpec(0.5, 0.0, 1.0, 1, 1))
+    assert shifted.cost[0, 0] == pytest.approx(0.2)
+
+
+def test_blank_map_spans_start_goal_and_margin():
+    blank = blank_map_spanning((1.0, 2.0), (-3.0, 5.5), cell=0.5, margin_m=1.0)
+    assert blank.spec.x_range[0] <= -4.0 and blank.spec.x_range[1] >= 2.0
+    assert blank.spec.y_range[0] <= 1.0 and blank.spec.y_range[1] >= 6.5
+    assert blank.unknown.all() and not blank.hazard.any()
+
+
+def test_map_layers_reject_mismatched_or_nan_known_layers():
+    spec = GridSpec(0.0, 0.0, 1.0, 2, 2)
+    with pytest.raises(ValueError, match="grid is"):
+        MapLayers(spec, np.zeros((2, 3)), np.zeros((2, 2), bool), np.zeros((2, 2), bool))
+    with pytest.raises(ValueError, match="NaN"):
+        MapLayers(spec, np.full((2, 2), np.nan), np.zeros((2, 2), bool), np.zeros((2, 2), bool))
+
+
+# --- straight segments -----------------------------------------------------------------------------
+
+def test_segment_cells_match_dense_sampling_and_skip_corner_touches():
+    rng = np.random.default_rng(7)
+    for _ in range(100):
+        a, b = rng.uniform(-3, 12, 2), rng.uniform(-3, 12, 2)
+        cells, entry = segment_cells(a, b)
+        t = np.linspace(0, 1, 5001)
+        sampled = np.floor(a + 0.5 + t[:, None] * (b - a)).astype(int)
+        assert {tuple(c) for c in sampled} <= {tuple(c) for c in cells}
+        assert (np.diff(entry) > 0).all() and entry[0] == 0.0
+    diagonal, _ = segment_cells(np.array([0.0, 0.0]), np.array([2.0, 2.0]))
+    assert diagonal.tolist() == [[0, 0], [1, 1], [2, 2]]
+
+
+def distance_to_polyline(points: np.ndarray, polyline: np.ndarray) -> np.ndarray:
+    """Distance from each point to the nearest segment of the polyline, written out independently."""
+    a, b = polyline[:-1][None, :, :], polyline[1:][None, :, :]
+    p = points[:, None, :]
+    t = np.clip(((p - a) * (b - a)).sum(-1) / ((b - a) ** 2).sum(-1), 0.0, 1.0)
+    return np.linalg.norm(p - (a + t[..., None] * (b - a)), axis=-1).min(axis=1)
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), tolerance=st.sampled_from([0.5, 1.0, 3.0]))
+def test_simplification_keeps_the_deviation_bound_and_clears_hazards(seed, tolerance):
+    rng = np.random.default_rng(seed)
+    cost = random_cost_grid(rng, 40, 40, 0.25, 1.0)
+    cost[0, 0] = cost[39, 39] = 0.0
+    result = astar(cost, (0, 0), (39, 39), weight=0.8)
+    if not result.found:
+        return
+    blocked = np.isinf(cost)
+    keep = simplify_path(result.cells, blocked, tolerance)
+    kept = result.cells[keep]
+    assert keep[0] == 0 and keep[-1] == len(result.cells) - 1 and (np.diff(keep) > 0).all()
+    assert distance_to_polyline(result.cells.astype(float), kept.astype(float)).max() <= tolerance + 1e-9
+    assert all(segment_is_clear(blocked, a, b) for a, b in zip(kept[:-1], kept[1:]))
+
+
+def test_a_segment_crossing_a_hazard_is_split():
+    cells = np.array([[0, 0], [1, 1], [2, 2], [2, 3], [2, 4], [1, 5], [0, 6]])
+    blocked = np.zeros((3, 7), dtype=bool)
+    blocked[0, 3] = True  # Douglas-Peucker with a 3-cell tolerance would draw (0,0)-(0,6) through it
+    assert douglas_peucker(cells, 3.0).tolist() == [0, 6]
+    keep = simplify_path(cells, blocked, 3.0)
+    assert keep.tolist() == [0, 2, 6]  # split at the first of the farthest points
+    assert all(segment_is_clear(blocked, cells[a], cells[b]) for a, b in zip(keep[:-1], keep[1:]))
+
+
+# --- world coordinates, lengths, the drivable prefix -----------------------------------------------
+
+def test_world_cell_round_trip_and_length():
+    spec = GridSpec(-2.0, 1.0, 0.25, 10, 12)
+    cells = np.array([[0, 0], [3, 4], [9, 11]])
+    xy = cells_to_world(spec, cells)
+    assert xy[0] == pytest.approx([-1.875, 1.125])
+    back, inside = world_to_cells(spec, xy)
+    assert (back == cells).all() and inside.all()
+    assert not world_to_cells(spec, np.array([[-2.1, 1.5]]))[1][0]
+    assert path_length(np.array([[0, 0], [3, 4], [3, 5]])) == pytest.approx(6.0)
+
+
+def test_drivable_prefix_cuts_at_the_margin_from_the_known_border():
+    spec = GridSpec(0.0, 0.0, 0.1, 40, 40)
+    known = np.zeros(spec.shape, dtype=bool)
+    known[:, :30] = True  # known up to x = 3.0 m
+    border = distance_to_border(known, spec.cell)
+    assert border[20, 29] == pytest.approx(0.1) and border[20, 30] == 0.0
+    assert border[0, 10] == pytest.approx(0.1)  # the map's own edge is a border too
+    waypoints = np.array([[0.55, 2.05], [1.55, 2.05], [3.85, 2.05]])
+    prefix = drivable_prefix(waypoints, spec, border, margin_m=0.5)
+    assert not prefix.complete and len(prefix.waypoints) == 3
+    # Cell centre x = 2.55 is 0.5 m from the first unknown centre (3.05); the next cell is too close.
+    assert prefix.waypoints[-1] == pytest.approx([2.6, 2.05])
+    inside = drivable_prefix(waypoints[:2], spec, border, margin_m=0.5)
+    assert inside.complete and len(inside.waypoints) == 2
+    stuck = drivable_prefix(np.array([[2.85, 2.05], [1.0, 2.05]]), spec, border, margin_m=0.5)
+    assert not stuck.complete and len(stuck.waypoints) == 1
+
+
+def test_drivable_prefix_keeps_the_margin_all_along():
+    spec = GridSpec(0.0, 0.0, 0.1, 60, 60)
+    yy, xx = np.mgrid[0:60, 0:60]
+    known = (yy - 30) ** 2 + (xx - 30) ** 2 < 25 ** 2  # a round local map
+    border = distance_to_border(known, spec.cell)
+    waypoints = cells_to_world(spec, np.array([[30, 30], [35, 40], [50, 45], [59, 10]]))
+    prefix = drivable_prefix(waypoints, spec, border, margin_m=0.4)
+    assert not prefix.complete
+    legs = zip(prefix.waypoints[:-1], prefix.waypoints[1:])
+    along = np.concatenate([np.linspace(a, b, 200) for a, b in legs])
+    cells, _ = world_to_cells(spec, along[:-1])  # the cut point itself is on the edge of the first bad cell
+    assert (border[cells[:, 0], cells[:, 1]] >= 0.4).all()
+
+
+# --- the whole pipeline and its reasons ------------------------------------------------------------
+
+def test_plan_path_round_a_rock():
+    spec = GridSpec(0.0, 0.0, 0.1, 50, 50)
+    hazard = np.zeros(spec.shape, dtype=bool)
+    hazard[20:30, 20:30] = True
+    layers = MapLayers(spec, np.zeros(spec.shape), hazard, np.zeros(spec.shape, bool))
+    params = PlanningParams(weight=0.7, rover_radius_m=0.2, hazard_margin_m=0.1, max_deviation_m=0.15)
+    result = plan_path(layers, (0.55, 0.55), (4.55, 4.55), params)
+    assert result.found and result.reason == ""
+    assert not result.hazards.mask[result.cells[:, 0], result.cells[:, 1]].any()
+    assert result.waypoints[0] == pytest.approx([0.55, 0.55])
+    assert result.waypoints[-1] == pytest.approx([4.55, 4.55])
+    blocked = np.isinf(result.cost_grid)
+    legs = zip(result.waypoint_cells[:-1], result.waypoint_cells[1:])
+    assert all(segment_is_clear(blocked, a, b) for a, b in legs)
+    assert result.length_m >= path_length(result.waypoints) - 1e-9
+    reference = dijkstra_reference(result.cost_grid, result.cells[0], result.cells[-1], 0.7, 0.1)
+    assert result.cost == pytest.approx(reference, abs=1e-9)
+
+
+def test_no_path_reasons():
+    hazard = np.zeros((50, 50), dtype=bool)
+    hazard[10, 10] = True
+    hazard[:, 40] = True  # a wall from south to north
+    unknown = np.zeros((50, 50), dtype=bool)
+    unknown[5, 30] = True
+    layers = MapLayers(GridSpec(0.0, 0.0, 0.1, 50, 50), np.zeros((50, 50)), hazard, unknown)
+    params = PlanningParams(rover_radius_m=0.2, hazard_margin_m=0.0, unknown_policy="forbid")
+
+    def reason(start, goal):
+        result = plan_path(layers, start, goal, params)
+        assert not result.found and len(result.waypoints) == 0 and math.isinf(result.cost)
+        return result.reason, result.message
+
+    assert reason((1.05, 1.05), (2.0, 2.0)) == ("start_blocked", "start (1.05, 1.05) is on a hazard")
+    code, message = reason((0.5, 0.5), (1.25, 1.05))
+    assert code == "goal_blocked" and "0.20 m from a hazard" in message and "clearance" in message
+    code, message = reason((3.05, 0.55), (0.5, 0.5))
+    assert code == "start_blocked" and "unknown" in message
+    assert reason((0.5, 0.5), (5.5, 0.5))[0] == "goal_outside_map"
+    assert reason((-0.1, 0.5), (0.5, 0.5))[0] == "start_outside_map"
+    code, message = reason((0.5, 0.5), (4.65, 2.0))
+    assert code == "unreachable" and "no path from (0.5, 0.5) to (4.65, 2)" in message
+
+
+def test_planning_params_are_checked():
+    with pytest.raises(ValueError, match="weight"):
+        PlanningParams(weight=-0.1)
+    with pytest.raises(ValueError, match="unknown_policy"):
+        PlanningParams(unknown_policy="maybe")
+    with pytest.raises(ValueError, match="rover_radius_m"):
+        PlanningParams(rover_radius_m=-1.0)
+
+
+def test_two_local_maps_fuse_by_the_same_rule():
+    global_map = blank_map_spanning((0.0, 0.0), (1.0, 1.0), cell=0.5, margin_m=0.0)
+    first = MapLayers.from_cost(GridSpec(0.0, 0.0, 0.25, 4, 4), np.full((4, 4), 0.2))
+    second = MapLayers.from_cost(GridSpec(0.5, 0.5, 0.1, 5, 5), np.full((5, 5), 0.6))
+    fused = fuse_maps(global_map, [first, second])
+    assert fused.cost == pytest.approx(np.array([[0.2, 0.2], [0.2, 0.6]]))
+    assert not fused.unknown.any()
+
+
+def test_navigation_step_fuse_plan_and_cut():
+    """One turn of the navigate loop: blank global map, local map round the rover, plan, cut at its border."""
+    start, goal = (0.5, 0.5), (8.0, 6.0)
+    local_spec = GridSpec(0.0, 0.0, 0.05, 60, 60)  # 3 m x 3 m around the start
+    local_cost = np.full(local_spec.shape, 0.1)
+    local_hazard = np.zeros(local_spec.shape, dtype=bool)
+    local_hazard[20:30, 15:45] = True  # a rock between the rover and the goal
+    local_map = MapLayers.from_cost(local_spec, local_cost, local_hazard)
+    global_map = blank_map_spanning(start, goal, cell=0.1, margin_m=1.0, local_maps=[local_map])
+    fused = fuse_maps(global_map, [local_map])
+
+    result = plan_path(fused, start, goal, PlanningParams(rover_radius_m=0.2, unknown_policy="penalize"))
+    assert result.found
+    border = distance_to_border(~local_map.unknown, local_spec.cell)
+    prefix = drivable_prefix(result.waypoints, local_spec, border, margin_m=0.3)
+    assert not prefix.complete and 1 < len(prefix.waypoints) <= len(result.waypoints)
+    end_cell, inside = world_to_cells(local_spec, prefix.waypoints[-1:] - 1e-9)
+    assert inside.all() and border[end_cell[0, 0], end_cell[0, 1]] >= 0.25
