@@ -1,7 +1,7 @@
 """Builds an RVS server from a configuration directory and runs it: devices, modules, transports.
 
     rvs-server [--host H] [--port P] [--zmq-port Z] [--data-dir D] [--config-dir C]
-               [--sim-speed S] [--token-file F]
+               [--sim-speed S] [--token-file F] [--world-seed N | --world FILE]
 
 Exit status: 0 after `quit` or a signal, 2 when a configuration file or an option is invalid.
 """
@@ -19,15 +19,18 @@ import time
 from pathlib import Path
 from typing import Any, Mapping
 
+import zmq
 from pydantic import Field, ValidationError
 
 from drivers.sim.clock import SimClock
+from drivers.sim.config import WorldConfig
 
 from . import __version__
 from .config import ConfigError, Settings, load_model, read_toml, validate_section
 from .devices import Devices, DevicesConfig
 from .dispatch import CommandSpec, Dispatcher, Module, Registry, Session
 from .jobs import JobCounter, RecoveryStore
+from .products import Products
 from .protocol import BadRequest
 from .transports.tcp import start_tcp
 from .transports.zmq import ZmqTransport
@@ -51,8 +54,8 @@ class ServerConfig(Settings):
 
 
 def all_modules() -> list[Module]:
-    from .modules import ptu, system
-    return [system.module, ptu.module]
+    from .modules import imaging, ptu, system
+    return [system.module, ptu.module, imaging.module]
 
 
 class ModuleConfig:
@@ -142,10 +145,11 @@ class Server:
                               f"--token-file (a file only its owner can read)")
         self.clock = SimClock(self.settings.sim_speed)
         self.recovery = RecoveryStore(self.data_dir / "recovery")
+        self.products = Products(self.data_dir)
         self.job_counter = JobCounter(self.data_dir / "jobs.counter")
         self.sessions: set[Session] = set()
         self.dispatcher = Dispatcher(self)
-        self.devices = Devices(self.devices_config, self.clock)
+        self.devices = Devices(self.devices_config, self.clock, self.world_config, self.world_file)
         self.zmq: ZmqTransport | None = None
         self.started = time.monotonic()
         self.log_handlers: list[logging.Handler] = []
@@ -158,17 +162,24 @@ class Server:
 
     def _load_configuration(self) -> None:
         d = self.config_dir
-        self.settings = load_model(d / "server.toml", ServerConfig, self.overrides)
+        server_keys = set(ServerConfig.model_fields)
+        self.settings = load_model(d / "server.toml", ServerConfig,
+                                   {k: v for k, v in self.overrides.items() if k in server_keys})
         self.devices_config = load_model(d / "devices.toml", DevicesConfig)
+        seed = self.overrides.get("world_seed")
+        self.world_config = load_model(d / "world.toml", WorldConfig, {"seed": seed} if seed is not None else None)
+        self.world_file = Path(self.overrides["world"]) if self.overrides.get("world") else None
+        if self.world_file is not None and not self.world_file.exists():
+            raise ConfigError(f"--world {self.world_file}: no such file")
         self.module_configs = {m.name: load_module_config(d, m) for m in self.modules}
 
     def reload_configuration(self) -> None:
         """`reinit`: read every file again; on any error keep the running configuration."""
-        old = (self.settings, self.devices_config, self.module_configs)
+        old = (self.settings, self.devices_config, self.world_config, self.module_configs)
         try:
             self._load_configuration()
         except ConfigError as exc:
-            self.settings, self.devices_config, self.module_configs = old
+            self.settings, self.devices_config, self.world_config, self.module_configs = old
             raise BadRequest(f"configuration not reloaded: {exc}") from None
 
     def module_settings(self, module: Module | None) -> Any:
@@ -180,8 +191,12 @@ class Server:
         return self.module_configs[spec.module.name].defaults.get(spec.name, {})
 
     def reopen_devices(self) -> None:
-        self.devices.close_all()
-        self.devices = Devices(self.devices_config, self.clock)
+        """reinit: devices from the reloaded configuration; the world is rebuilt only if it changed."""
+        old = self.devices
+        old.close_all()
+        same_world = old.testbed.world_config == self.world_config and old.testbed.world_file == self.world_file
+        self.devices = Devices(self.devices_config, self.clock, self.world_config, self.world_file,
+                               testbed=old.testbed if same_world else None)
         self.devices.open_all()
 
     # -- logging and events ---------------------------------------------------------------------
@@ -229,15 +244,16 @@ class Server:
     async def start(self) -> None:
         self._loop = asyncio.get_running_loop()
         self._stopped = asyncio.Event()
+        s = self.settings
+        # Listen first: a taken port must stop start-up before any device moves or a world is built.
+        self._tcp = await start_tcp(self, s.host, s.port)
+        self.zmq = ZmqTransport(self)
+        self.zmq.bind(s.host, s.zmq_port)
         await asyncio.to_thread(self.devices.open_all)
         for device in self.devices:
             if device.health == "fault":
                 log.error("%s failed to open: %s (the server runs on; reset retries)", device.name,
                           device.last_error)
-        s = self.settings
-        self._tcp = await start_tcp(self, s.host, s.port)
-        self.zmq = ZmqTransport(self)
-        self.zmq.bind(s.host, s.zmq_port)
         self._zmq_task = asyncio.ensure_future(self.zmq.serve())
         tcp_port = self._tcp.sockets[0].getsockname()[1]
         self.address = (s.host, tcp_port)
@@ -327,13 +343,16 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--config-dir", default="./configs", help="configuration files (default ./configs)")
     parser.add_argument("--sim-speed", type=float, help="simulated seconds per wall second (default 1.0)")
     parser.add_argument("--token-file", help="file holding the token clients must send with auth")
+    parser.add_argument("--world-seed", type=int, help="seed of the simulated world (default: configs/world.toml)")
+    parser.add_argument("--world", help="a saved simulated world (.npz) to load instead of building one")
     return parser.parse_args(argv)
 
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     overrides = {"host": args.host, "port": args.port, "zmq_port": args.zmq_port, "data_dir": args.data_dir,
-                 "sim_speed": args.sim_speed, "token_file": args.token_file}
+                 "sim_speed": args.sim_speed, "token_file": args.token_file, "world_seed": args.world_seed,
+                 "world": args.world}
     try:
         server = Server(Path(args.config_dir), overrides)
     except ConfigError as exc:
@@ -348,7 +367,7 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         asyncio.run(run())
-    except OSError as exc:  # the port is taken, the address is not ours
+    except (OSError, zmq.ZMQError) as exc:  # the port is taken, the address is not ours
         print(f"rvs-server: cannot listen: {exc}", file=sys.stderr)
         server.devices.close_all()
         return 2

@@ -258,6 +258,9 @@ class Dispatcher:
             defaults = self.server.command_defaults(spec)
             cfg = build_config(spec.name, spec.config, defaults, values)
         self.admit(spec)
+        if spec.kind == "job":
+            for name in spec.devices:  # fail before a job exists, not half-way through it
+                self.server.devices[name].require_healthy()
         if spec.validate is not None:
             spec.validate(self.server, cfg)
         return spec, cfg
@@ -322,7 +325,7 @@ class Dispatcher:
         log.info("job %s start: %s%s", job_id, line, " (continued)" if recovery else "")
         server.publish("progress", {"job": job_id, "command": spec.name, "percent": 0, "message": "started"})
         work = loop.run_in_executor(self._executor, spec.handler, ctx, cfg)
-        self._job_future = asyncio.ensure_future(self._finish(job, spec, rset, work))
+        self._job_future = asyncio.ensure_future(self._finish(job, ctx, rset, work))
         return self._job_future
 
     def _progress(self, job: Job, sink: ReplySink, percent: float, message: str) -> None:
@@ -330,30 +333,34 @@ class Dispatcher:
         self.server.publish("progress", {"job": job.id, "command": job.command, "percent": round(percent),
                                          "message": message})
 
-    async def _finish(self, job: Job, spec: CommandSpec, rset: RecoverySet | None,
+    async def _finish(self, job: Job, ctx: JobContext, rset: RecoverySet | None,
                       work: Awaitable[Any]) -> dict[str, Any]:
         store = self.server.recovery
-        keep_reason: str | None = None
+        keep_reason: str | None = None  # why the recovery set is kept; None drops it
+        outcome = "failed"
         try:
             result = await work
+            outcome = "finished"
             return {"job": job.id, **(result or {})}
         except JobInterrupted as exc:
             keep_reason = exc.reason
             raise Interrupted(self._stopped_message(job, f"interrupted by {exc.reason}", rset),
                               data=self._recovery_data(rset)) from None
-        except (DeviceFault, DeviceError) as exc:
-            keep_reason = "device"
+        except (DeviceFault, DeviceError, Timeout) as exc:
             err = exc if isinstance(exc, RvsError) else _device_error(exc)
-            raise type(err)(f"{err.message}; {self._stopped_message(job, 'stopped', rset)}",
-                            data=self._recovery_data(rset)) from None
-        except Timeout as exc:
-            keep_reason = "timeout"
-            raise Timeout(f"{exc.message}; {self._stopped_message(job, 'stopped', rset)}") from None
+            # Worth resuming only if the job got as far as its first checkpoint.
+            kept = rset if rset is not None and rset.state is not None else None
+            keep_reason = err.reason if kept is not None else None
+            raise type(err)(f"{err.message}; {self._stopped_message(job, 'stopped', kept)}",
+                            data=self._recovery_data(kept)) from None
         except RvsError:
             raise
         except Exception:
             raise self._internal(f"job {job.id} ({job.command})") from None
         finally:
+            for product in ctx.products:  # a product the job did not finish says why in its manifest
+                if not product.finished:
+                    product.finish("interrupted" if keep_reason else "failed")
             if rset is not None:
                 if keep_reason is None:
                     store.delete(rset.job)
@@ -365,7 +372,7 @@ class Dispatcher:
             job.done.set()
             # A job that can be continued leaves the server in break mode; anything else in standby.
             self._base_mode = "break" if keep_reason is not None and rset is not None else "standby"
-            log.info("job %s end (%s)", job.id, keep_reason or "finished")
+            log.info("job %s end (%s)", job.id, keep_reason or outcome)
             self._announce_mode()
 
     @staticmethod

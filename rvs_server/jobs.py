@@ -163,6 +163,7 @@ class JobContext:
         self._rset = rset
         self._store = store
         self._on_progress = on_progress
+        self.products: list[Any] = []  # folders this run writes; the runner closes unfinished ones
         self.log = logging.getLogger(f"rvs.job.{job.command}")
 
     @property
@@ -204,3 +205,33 @@ class JobContext:
 
     def publish(self, topic: str, data: dict[str, Any]) -> None:
         self.server.publish_threadsafe(topic, data)
+
+    # -- products -------------------------------------------------------------------------------
+
+    def product(self, cfg: Any, name: str | None = None) -> Any:
+        """The job's product folder: new (named by --output when the command has one), or the
+        same folder again when this run continues an interrupted job."""
+        arguments = cfg.model_dump(mode="json")
+        products = self.server.products
+        if self.resume and "product" in self.resume:
+            product = products.reopen(self.resume["product"], self.job.command, arguments, job=self.job.id)
+        else:
+            product = products.create(self.job.command, name or arguments.get("output"), arguments,
+                                      job=self.job.id)
+            self.checkpoint({**(self.resume or {}), "product": product.name})
+        self.products.append(product)
+        return product
+
+    def save_truth(self, product: Any) -> None:
+        """With simulated devices, the simulator's truth of this instant goes to truth/."""
+        devices = self.devices
+        if devices.simulated and devices.testbed.ready:
+            product.write_json("truth/state.json", devices.testbed.truth(),
+                               "simulator truth of the moment: rover pose, PTU angles, sensor poses (world frame)")
+
+    def finish_product(self, product: Any) -> dict[str, Any]:
+        """Write the manifest, announce the product, and give the reply's product keys."""
+        product.finish()
+        self.publish("product", {"name": product.name, "command": product.manifest["command"],
+                                 "path": str(product.path)})
+        return {"product": product.name, "path": str(product.path)}

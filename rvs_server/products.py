@@ -29,6 +29,7 @@ class Product:
                  config: Mapping[str, Any] | None = None, job: str | None = None):
         self.path = path
         self.name = name
+        self.finished = False
         self.manifest: dict[str, Any] = {
             "name": name,
             "command": command,
@@ -74,6 +75,8 @@ class Product:
         self.manifest[key] = value
 
     def finish(self, status: str = "complete") -> Path:
+        """Write the manifest. Status: complete, interrupted (continue finishes it) or failed."""
+        self.finished = True
         self.manifest["status"] = status
         self.manifest["finished"] = time.strftime("%Y-%m-%dT%H:%M:%S%z")
         target = self.path / "product.json"

@@ -1,12 +1,6 @@
-"""The devices the server drives, built from `configs/devices.toml`, with their health.
-
-Each device is a thin wrapper around a driver from `drivers/`: it opens the real backend or the
-emulator the config names, keeps its health (`ok`, `fault`, `off`) and its last error for `status`,
-and gives jobs the driver once the device is healthy.
-"""
+"""The pan-tilt unit device: the PTU-D46 driver over a serial port or over the emulator's pty."""
 from __future__ import annotations
 
-import logging
 import threading
 from typing import Any, Literal
 
@@ -15,12 +9,8 @@ from pydantic import Field
 from drivers.errors import DeviceFault
 from drivers.sim.clock import SimClock
 
-from .config import Settings
-from .protocol import DeviceError
-
-log = logging.getLogger("rvs.devices")
-
-Health = Literal["ok", "fault", "off"]
+from ..config import Settings
+from .base import Device, log
 
 
 class PtuDeviceConfig(Settings):
@@ -35,47 +25,16 @@ class PtuDeviceConfig(Settings):
     park_on_quit: bool = True
 
 
-class DevicesConfig(Settings):
-    ptu: PtuDeviceConfig = PtuDeviceConfig()
-
-
-class Device:
-    """Health bookkeeping shared by every device."""
-
-    name = "device"
-
-    def __init__(self) -> None:
-        self.health: Health = "off"
-        self.last_error = ""
-
-    def _fault(self, exc: BaseException) -> None:
-        self.health = "fault"
-        self.last_error = str(exc)
-        log.error("%s: %s", self.name, exc)
-
-    def require(self) -> Any:
-        """The driver, or ERR 503 naming the device and its last error."""
-        if self.health != "ok":
-            detail = f": {self.last_error}" if self.last_error else ""
-            raise DeviceError(f"{self.name} is {self.health}{detail}")
-        return self.driver  # type: ignore[attr-defined]
-
-    def open(self) -> None: ...
-    def close(self) -> None: ...
-    def check(self) -> None: ...
-    def reset(self) -> None: ...
-    def park(self) -> None: ...
-
-
 class PtuDevice(Device):
     """The pan-tilt unit: the PTU-D46 driver over a serial port or over the emulator's pty."""
 
     name = "ptu"
 
-    def __init__(self, config: PtuDeviceConfig, clock: SimClock):
+    def __init__(self, config: PtuDeviceConfig, clock: SimClock, testbed: Any = None):
         super().__init__()
         self.config = config
         self.clock = clock
+        self.testbed = testbed  # the simulated test bed takes the unit's true angles from here
         self.driver: Any = None
         self.emulator: Any = None
         self._line: Any = None  # the emulator's pseudo-terminal
@@ -93,6 +52,8 @@ class PtuDevice(Device):
                 if self.emulator is None:
                     self.emulator = PtuEmulator(self.clock)
                     self._line = self.emulator.serve_pty()
+                    if self.testbed is not None:
+                        self.testbed.ptu_angles = self.emulator.true_angles_deg
                 self.url = self._line.path
             else:
                 self.url = self.config.port
@@ -179,33 +140,3 @@ class PtuDevice(Device):
             self._line = None
             self.emulator = None
         self.health = "off"
-
-
-class Devices:
-    """Every device by name, in the order they were configured."""
-
-    def __init__(self, config: DevicesConfig, clock: SimClock):
-        self.config = config
-        self.clock = clock
-        self.items: dict[str, Device] = {"ptu": PtuDevice(config.ptu, clock)}
-
-    def __getitem__(self, name: str) -> Device:
-        return self.items[name]
-
-    def __iter__(self):
-        return iter(self.items.values())
-
-    @property
-    def ptu(self) -> PtuDevice:
-        return self.items["ptu"]  # type: ignore[return-value]
-
-    def open_all(self) -> None:
-        for device in self:
-            device.open()
-
-    def close_all(self) -> None:
-        for device in self:
-            device.close()
-
-    def health(self) -> dict[str, str]:
-        return {f"dev.{d.name}": d.health for d in self}

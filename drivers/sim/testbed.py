@@ -1,0 +1,104 @@
+"""The simulated test bed: one world, one rover on it, and the truth every emulated device shares.
+
+The server builds one SimulatedTestbed when any device runs on the simulator. Emulated sensors ask
+it where they are (the true camera pose, from the rover's pose and the PTU emulator's true angles
+at that instant); products ask it for the truth of the moment (rover pose, PTU angles, true
+heights and obstacles over a grid), which they store apart from what the sensors saw.
+
+The world is built lazily, in a background thread started by `prebuild()`, because a 40 m scene
+takes seconds and more than a gigabyte: a server that only drives the PTU never pays for it.
+"""
+from __future__ import annotations
+
+import threading
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from .clock import SimClock
+from .config import WorldConfig
+from .rover import Rover, RoverConfig
+from .world import World
+
+
+class SimulatedTestbed:
+    def __init__(self, clock: SimClock, world_config: WorldConfig | None = None,
+                 world_file: Path | None = None, rover_config: RoverConfig | None = None,
+                 start_pose: tuple[float, float, float] = (0.0, 0.0, 0.0)):
+        self.clock = clock
+        self.world_config = world_config or WorldConfig()
+        self.world_file = world_file
+        self.rover_config = rover_config or RoverConfig()
+        self.start_pose = start_pose
+        self._world: World | None = None
+        self._rover: Rover | None = None
+        self._lock = threading.Lock()
+        self._builder: threading.Thread | None = None
+        self._build_error: BaseException | None = None
+        # Set by the PTU device: the unit's true (pan, tilt) in degrees right now.
+        self.ptu_angles: Callable[[], tuple[float, float]] = lambda: (0.0, 0.0)
+
+    # -- the world, built once ------------------------------------------------------------------
+
+    def prebuild(self) -> None:
+        """Start building the world in the background, so the first acquisition does not wait."""
+        with self._lock:
+            if self._world is None and self._builder is None:
+                self._builder = threading.Thread(target=self._build_quietly, name="rvs-world-build", daemon=True)
+                self._builder.start()
+
+    def _build_quietly(self) -> None:
+        try:
+            self.world
+        except BaseException as exc:  # reported to whoever needs the world next
+            self._build_error = exc
+
+    def close(self) -> None:
+        """Wait for a world still being built: Open3D's threads must not outlive the interpreter."""
+        builder = self._builder
+        if builder is not None:
+            builder.join()
+
+    @property
+    def world(self) -> World:
+        with self._lock:
+            if self._world is None:
+                if self._build_error is not None:
+                    raise self._build_error
+                world = World.load(self.world_file) if self.world_file else World.build(self.world_config)
+                self._rover = Rover(world, self.rover_config, *self.start_pose)
+                self._world = world
+            return self._world
+
+    @property
+    def ready(self) -> bool:
+        return self._world is not None
+
+    @property
+    def rover(self) -> Rover:
+        self.world
+        assert self._rover is not None
+        return self._rover
+
+    # -- poses and truth ------------------------------------------------------------------------
+
+    def sensor_pose(self, sensor: str) -> np.ndarray:
+        """The true camera-to-world pose of a sensor now (OpenCV camera frame)."""
+        pan, tilt = self.ptu_angles()
+        return self.rover.sensor_to_world(sensor, pan, tilt)
+
+    def truth(self) -> dict:
+        """The state of the moment, for a product's truth/ folder."""
+        rover = self.rover
+        pan, tilt = self.ptu_angles()
+        roll, pitch = rover.roll_pitch()
+        return {
+            "time_s": self.clock.now(),
+            "rover": {"x": rover.x, "y": rover.y, "heading_rad": rover.heading, "roll_rad": roll,
+                      "pitch_rad": pitch, "body_to_world": rover.body_to_world.tolist()},
+            "ptu": {"pan_deg": pan, "tilt_deg": tilt},
+            "sensors": {name: rover.sensor_to_world(name, pan, tilt).tolist() for name in rover.sensors},
+            "world": {"seed": self.world_config.seed, "file": str(self.world_file) if self.world_file else None,
+                      "sun": self.world.sun.model_dump() if hasattr(self.world.sun, "model_dump") else None},
+        }

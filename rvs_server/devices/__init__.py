@@ -1,0 +1,84 @@
+"""The devices the server drives, built from `configs/devices.toml`, with their health.
+
+Each device is a thin wrapper around a driver from `drivers/`: it opens the real backend or the
+emulator the config names, keeps its health (`ok`, `fault`, `off`) and last error for `status`,
+and gives jobs the driver once the device is healthy. When any device runs on the simulator, one
+SimulatedTestbed (world, rover, truth) is shared by all of them.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from drivers.sim.clock import SimClock
+from drivers.sim.config import WorldConfig
+from drivers.sim.testbed import SimulatedTestbed
+
+from ..config import Settings
+from .base import Device, Health
+from .cameras import CamerasDeviceConfig, StereoDevice
+from .ptu import PtuDevice, PtuDeviceConfig
+from .tof import TofDevice, TofDeviceConfig
+
+
+class DevicesConfig(Settings):
+    ptu: PtuDeviceConfig = PtuDeviceConfig()
+    tof: TofDeviceConfig = TofDeviceConfig()
+    cameras: CamerasDeviceConfig = CamerasDeviceConfig()
+
+
+class Devices:
+    """Every device by name, in the order they were configured."""
+
+    def __init__(self, config: DevicesConfig, clock: SimClock, world_config: WorldConfig | None = None,
+                 world_file: Path | None = None, testbed: SimulatedTestbed | None = None):
+        self.config = config
+        self.clock = clock
+        self.testbed = testbed or SimulatedTestbed(clock, world_config, world_file)
+        self.items: dict[str, Device] = {
+            "ptu": PtuDevice(config.ptu, clock, self.testbed),
+            "tof": TofDevice(config.tof, clock, self.testbed),
+            "cameras": StereoDevice(config.cameras, clock, self.testbed),
+        }
+
+    def __getitem__(self, name: str) -> Device:
+        return self.items[name]
+
+    def __iter__(self):
+        return iter(self.items.values())
+
+    @property
+    def ptu(self) -> PtuDevice:
+        return self.items["ptu"]  # type: ignore[return-value]
+
+    @property
+    def tof(self) -> TofDevice:
+        return self.items["tof"]  # type: ignore[return-value]
+
+    @property
+    def cameras(self) -> StereoDevice:
+        return self.items["cameras"]  # type: ignore[return-value]
+
+    @property
+    def simulated(self) -> bool:
+        """True when the sensors run on the simulator, so products can carry its truth."""
+        c = self.config
+        return any(d.enabled and d.backend == "sim" for d in (c.tof, c.cameras))
+
+    def open_all(self) -> None:
+        for device in self:
+            device.open()
+
+    def close_all(self) -> None:
+        for device in self:
+            device.close()
+        self.testbed.close()
+
+    def health(self) -> dict[str, str]:
+        items: dict[str, str] = {}
+        for device in self:
+            items.update(device.health_items())
+        return items
+
+
+__all__ = ["Devices", "DevicesConfig", "Device", "Health", "PtuDevice", "StereoDevice", "TofDevice"]

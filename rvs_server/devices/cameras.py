@@ -1,0 +1,132 @@
+"""The stereo camera pair and its trigger box: Allied Vision cameras through vmbpy, the trigger on the
+parallel port through ppdev, or both emulated over the simulated test bed."""
+from __future__ import annotations
+
+import threading
+from typing import Any, Literal
+
+from pydantic import Field
+
+from drivers.errors import DeviceFault
+from drivers.sim.clock import SimClock
+
+from ..config import Settings
+from .base import Device, log
+
+Resolution = Literal["low", "medium", "high", "highest"]
+
+
+class CamerasDeviceConfig(Settings):
+    enabled: bool = True
+    backend: Literal["sim", "vimba"] = Field("sim", description="sim: emulated cameras over the world")
+    left_id: str = Field("", description="camera id used as left; empty: the first found")
+    right_id: str = Field("", description="camera id used as right; empty: the second found")
+    settings_file: str = Field("", description="camera settings file (saved by the driver); empty: defaults")
+    resolution: Resolution = "medium"
+    grab_timeout_s: float = Field(5.0, gt=0, le=120, description="wait for a triggered frame, wall seconds")
+    trigger_backend: Literal["sim", "ppdev"] = "sim"
+    trigger_port: str = Field("/dev/parport0", description="parallel port node, for trigger_backend ppdev")
+    seed: int = Field(11, description="sensor noise seed of the emulated cameras")
+
+
+class StereoDevice(Device):
+    """Both cameras and the trigger box; status shows each."""
+
+    name = "cameras"
+
+    def __init__(self, config: CamerasDeviceConfig, clock: SimClock, testbed: Any = None):
+        super().__init__()
+        self.config = config
+        self.clock = clock
+        self.testbed = testbed
+        self.driver: Any = None
+        self._lock = threading.Lock()
+
+    def health_items(self) -> dict[str, str]:
+        if self.health != "ok" or self.driver is None:
+            return {"dev.camera_left": self.health, "dev.camera_right": self.health, "dev.trigger": self.health}
+        status = self.driver.status()
+        state = {"error": "fault", "closed": "off"}
+        return {"dev.camera_left": state.get(status.left.state, "ok"),
+                "dev.camera_right": state.get(status.right.state, "ok"),
+                "dev.trigger": "fault" if status.trigger.last_error else ("ok" if status.trigger.is_open else "off")}
+
+    def open(self) -> None:
+        if not self.config.enabled:
+            self.health = "off"
+            return
+        if self.config.backend == "sim":
+            self.testbed.prebuild()  # the pair itself is made on first use, once the world exists
+            self.health, self.last_error = "ok", ""
+            return
+        try:
+            self._make()
+        except (DeviceFault, OSError, ValueError) as exc:
+            self._fault(exc)
+
+    def require(self) -> Any:
+        self.require_healthy()
+        with self._lock:
+            if self.driver is None:
+                try:
+                    self._make()
+                except (DeviceFault, OSError, ValueError) as exc:
+                    self._fault(exc)
+                    raise
+        return self.driver
+
+    def _make(self) -> None:
+        from drivers.avt import CameraSettings, emulated_stereo_pair, vimba_stereo_pair
+        from drivers.trigger import PpdevTrigger
+        c = self.config
+        settings = CameraSettings.load(c.settings_file) if c.settings_file else CameraSettings()
+        settings = settings.with_changes(resolution=c.resolution)
+        trigger = PpdevTrigger(c.trigger_port, clock=self.clock) if c.trigger_backend == "ppdev" else None
+        if c.backend == "sim":
+            testbed = self.testbed
+            pair = emulated_stereo_pair(testbed.world, lambda t: testbed.sensor_pose("left"),
+                                        lambda t: testbed.sensor_pose("right"), clock=self.clock,
+                                        trigger=trigger, seed=c.seed, default_settings=settings)
+        else:
+            if trigger is None:
+                from drivers.trigger import EmulatedTrigger
+                trigger = EmulatedTrigger(self.clock)
+            pair = vimba_stereo_pair(trigger, default_settings=settings)
+        if c.left_id and c.right_id:
+            pair.set_ids(c.left_id, c.right_id)
+        pair.open()
+        self.driver = pair
+        self.health, self.last_error = "ok", ""
+
+    def check(self) -> None:
+        if not self.config.enabled:
+            self.health = "off"
+            return
+        if self.driver is not None:
+            status = self.driver.status()
+            broken = [s for s in (status.left, status.right) if s.state == "error"]
+            if broken:
+                self._fault(DeviceFault(f"camera {broken[0].camera_id}: {broken[0].last_error}", "cameras"))
+                return
+        if self.health != "ok" and self.config.backend == "sim":
+            self.health, self.last_error = "ok", ""
+
+    def reset(self) -> None:
+        if self.driver is not None:
+            try:
+                self.driver.reset()
+                self.health, self.last_error = "ok", ""
+            except DeviceFault as exc:
+                self._fault(exc)
+        else:
+            self.close()
+            self.open()
+
+    def close(self) -> None:
+        if self.driver is not None:
+            try:
+                self.driver.close()
+            except Exception as exc:  # closing must never stop a shutdown
+                log.warning("cameras close: %s", exc)
+            self.driver = None
+        self.health = "off"

@@ -1,0 +1,109 @@
+"""The SwissRanger SR4000 time-of-flight camera: libmesasr through ctypes, or the emulator over the
+simulated test bed."""
+from __future__ import annotations
+
+import threading
+from typing import Any, Literal
+
+from pydantic import Field
+
+from drivers.errors import DeviceFault
+from drivers.sim.clock import SimClock
+
+from ..config import Settings
+from .base import Device, log
+
+
+class TofDeviceConfig(Settings):
+    enabled: bool = True
+    backend: Literal["sim", "mesa"] = Field("sim", description="sim: the emulator over the world")
+    usb_serial: int = Field(0, ge=0, description="USB serial number; 0 opens the first camera found")
+    address: str = Field("", description="IP address for an Ethernet SR4000; empty: USB")
+    library: str = Field("", description="path of libmesasr.so; empty: the system's")
+    settings_file: str = Field("", description="SR4000 settings text file (with defaults); empty: defaults")
+    seed: int = Field(5, description="noise seed of the emulated camera")
+
+
+class TofDevice(Device):
+    name = "tof"
+
+    def __init__(self, config: TofDeviceConfig, clock: SimClock, testbed: Any = None):
+        super().__init__()
+        self.config = config
+        self.clock = clock
+        self.testbed = testbed
+        self.driver: Any = None
+        self._lock = threading.Lock()
+
+    def open(self) -> None:
+        if not self.config.enabled:
+            self.health = "off"
+            return
+        if self.config.backend == "sim":
+            self.testbed.prebuild()  # the emulator is made on first use, once the world exists
+            self.health, self.last_error = "ok", ""
+            return
+        try:
+            self._make()
+        except (DeviceFault, OSError, ValueError) as exc:
+            self._fault(exc)
+
+    def require(self) -> Any:
+        self.require_healthy()
+        with self._lock:
+            if self.driver is None:
+                try:
+                    self._make()
+                except (DeviceFault, OSError, ValueError) as exc:
+                    self._fault(exc)
+                    raise
+        return self.driver
+
+    def _settings(self) -> Any:
+        from drivers.sr4000 import Sr4000Settings
+        path = self.config.settings_file
+        return Sr4000Settings.load_or_default(path) if path else Sr4000Settings()
+
+    def _make(self) -> None:
+        c = self.config
+        if c.backend == "sim":
+            from drivers.sr4000_emulator import Sr4000Emulator
+            testbed = self.testbed
+            camera = Sr4000Emulator(testbed.world, lambda: testbed.sensor_pose("tof"), self.clock, seed=c.seed,
+                                    settings=self._settings())
+        else:
+            from drivers.sr4000_mesasr import MesaSr4000
+            camera = MesaSr4000(usb_serial=c.usb_serial, address=c.address or None, library=c.library or None,
+                                settings=self._settings(), clock=self.clock)
+        camera.open()
+        self.driver = camera
+        self.health, self.last_error = "ok", ""
+
+    def check(self) -> None:
+        if not self.config.enabled:
+            self.health = "off"
+            return
+        if self.driver is None:
+            if self.config.backend == "sim":
+                self.health, self.last_error = "ok", ""
+            else:
+                self.open()
+            return
+        status = self.driver.status()
+        if getattr(status, "last_error", None):
+            self._fault(DeviceFault(status.last_error, "tof"))
+        else:
+            self.health, self.last_error = "ok", ""
+
+    def reset(self) -> None:
+        self.close()
+        self.open()
+
+    def close(self) -> None:
+        if self.driver is not None:
+            try:
+                self.driver.close()
+            except Exception as exc:  # closing must never stop a shutdown
+                log.warning("tof close: %s", exc)
+            self.driver = None
+        self.health = "off"
