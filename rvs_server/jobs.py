@@ -14,6 +14,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import shutil
 import threading
 import time
 from dataclasses import dataclass, field
@@ -82,8 +83,13 @@ class RecoveryStore:
             log.error("recovery set %s is unreadable: %s", path, exc)
             return None
 
+    def folder(self, job: str) -> Path:
+        """A job's working folder: its workflow checkpoints live here, beside its recovery set."""
+        return self.directory / job
+
     def delete(self, job: str) -> None:
         self._path(job).unlink(missing_ok=True)
+        shutil.rmtree(self.folder(job), ignore_errors=True)
 
     def all(self) -> list[RecoverySet]:
         sets = [self.load(p.stem) for p in self.directory.glob("*.json")]
