@@ -71,7 +71,7 @@ def covered_half_width(tilt: float, band: tuple[float, float], horizontal_fov: f
         inside_low = np.where(seen, middle, inside_low)
         outside_high = np.where(seen, outside_high, middle)
     half_width = float(inside_low.min())
-    if half_width < 1e-6:
+    if half_width < 0.01 * horizontal_fov:   # hundreds of views per row: the frames barely meet
         raise ValueError("the views' frames only touch at the corners: ask for some overlap (> 0)")
     return half_width
 

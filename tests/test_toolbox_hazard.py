@@ -1,0 +1,201 @@
+"""toolbox.hazard against known answers, and the whole TOF chain on a small simulated scene."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from drivers.sim.config import WorldConfig
+from drivers.sim.render import PinholeCamera, render
+from drivers.sim.rover import Rover
+from drivers.sim.world import World
+from rvs_server.toolbox import dem as D
+from rvs_server.toolbox import geometry as g
+from rvs_server.toolbox import hazard as H
+from rvs_server.toolbox import views as V
+from rvs_server.toolbox.grid import GridSpec
+
+CELL = 0.02
+
+
+def inclined_plane(slope_deg: float, azimuth: float, shape=(120, 150), z0: float = 250.0) -> np.ndarray:
+    """A plane rising at slope_deg toward azimuth (radians from x), far from z = 0 on purpose."""
+    rows, cols = np.mgrid[0:shape[0], 0:shape[1]]
+    along = cols * CELL * math.cos(azimuth) + rows * CELL * math.sin(azimuth)
+    return z0 + math.tan(math.radians(slope_deg)) * along
+
+
+def interior(array: np.ndarray, margin: int = 15) -> np.ndarray:
+    return array[margin:-margin, margin:-margin]
+
+
+# ---------------------------------------------------------------------------------- slope, roughness
+@pytest.mark.parametrize("slope_deg, azimuth", [(0.0, 0.0), (10.0, 0.3), (25.0, 2.0), (40.0, -1.2)])
+def test_slope_of_a_plane(slope_deg, azimuth):
+    slope, roughness = H.plane_fit(inclined_plane(slope_deg, azimuth), CELL, 0.1)
+    assert np.abs(interior(slope) - slope_deg).max() < 1e-6
+    assert interior(roughness).max() < 1e-6
+
+
+def test_slope_ignores_unknown_cells():
+    heights = inclined_plane(15.0, 0.7)
+    rng = np.random.default_rng(0)
+    heights[rng.random(heights.shape) < 0.3] = np.nan
+    slope, roughness = H.plane_fit(heights, CELL, 0.1)
+    known = np.isfinite(heights)
+    assert np.isnan(slope[~known]).all() and np.isnan(roughness[~known]).all()
+    assert np.nanmax(np.abs(interior(slope) - 15.0)) < 1e-6
+
+
+def test_roughness_of_noise_is_its_sigma():
+    rng = np.random.default_rng(1)
+    sigma = 0.01
+    heights = inclined_plane(12.0, 1.0, shape=(200, 200)) + rng.normal(0.0, sigma, (200, 200))
+    slope, roughness = H.plane_fit(heights, CELL, 0.1)
+    assert np.median(interior(roughness)) == pytest.approx(sigma, rel=0.03)
+    assert np.median(interior(slope)) == pytest.approx(12.0, abs=0.3)
+
+
+# ---------------------------------------------------------------------------------- step
+def box_on_ground(height: float, side_cells: int, base: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    heights = np.zeros((100, 100)) if base is None else base.copy()
+    box = np.zeros(heights.shape, bool)
+    start = 50 - side_cells // 2
+    box[start:start + side_cells, start:start + side_cells] = True
+    heights[box] += height
+    return heights, box
+
+
+@pytest.mark.parametrize("side_cells", [8, 40])     # 0.16 m: narrower than the plate; 0.8 m: wider than the edge window
+def test_step_of_a_box_is_its_height(side_cells):
+    heights, box = box_on_ground(0.15, side_cells)
+    step = H.step_height(heights, CELL, 0.1, 0.5)
+    assert np.allclose(step[box], 0.15)             # the whole top, not just the rim
+    far = ~ndimage.binary_dilation(box, iterations=3)
+    assert np.abs(step[far]).max() < 1e-12
+
+
+def test_a_slope_is_not_a_step():
+    heights = inclined_plane(18.0, 0.4)
+    step = H.step_height(heights, CELL, 0.1, 0.5)
+    assert step.max() < 0.06                         # edge window only: 0.1 m * tan 18 * (|cos| + |sin|)
+    assert np.abs(H.ground_surface(heights, 25) - heights).max() < 1e-9   # the plate alone: zero on a plane
+
+
+def test_the_box_on_a_slope_keeps_its_height():
+    heights, box = box_on_ground(0.15, 20, base=inclined_plane(10.0, 1.0, shape=(100, 100)))
+    step = H.step_height(heights, CELL, 0.1, 0.5)
+    assert np.abs(step[box] - 0.15).max() < 0.03       # the plate rests a little off the rock's own ground
+
+
+def test_a_lone_spike_is_not_a_step_but_a_patch_is():
+    heights = np.zeros((100, 100))
+    heights[30, 30] = 0.15                           # one noisy cell
+    heights[60:63, 60:63] = 0.15                     # nine cells: a small rock
+    maps = H.hazard_maps(heights, CELL)
+    step_bit = (maps.code & H.STEP) > 0
+    assert not step_bit[25:36, 25:36].any()
+    assert step_bit[60:63, 60:63].all()
+    assert maps.step[30, 30] == pytest.approx(0.15 / 5)     # one agreeing cell of five needed
+
+
+# ---------------------------------------------------------------------------------- hazard codes
+def test_hazard_codes_keep_unknown_apart_from_safe():
+    heights = inclined_plane(5.0, 0.0, shape=(100, 200))
+    heights[:, 100:] = inclined_plane(30.0, 0.0, shape=(100, 100)) - inclined_plane(30.0, 0.0, (100, 100))[0, 0] \
+        + heights[0, 99]
+    heights[40:60, 20:40] = np.nan                   # a hole nobody saw
+    heights[5, 5] = np.nan
+    maps = H.hazard_maps(heights, CELL)
+    code = maps.code
+    assert code.dtype == np.uint8
+    assert (code[40:60, 20:40] == H.UNKNOWN).all() and code[5, 5] == H.UNKNOWN
+    assert (code[20:80, 45:85] == H.SAFE).all()                    # gentle 5 degrees
+    assert (code[20:80, 125:180] == H.HAZARD | H.SLOPE).all()      # 30 degrees: hazard by slope only
+    assert H.is_hazard(code[20:80, 125:180]).all()
+    assert not H.is_hazard(code[40:60, 20:40]).any()               # unknown is not a hazard either
+    assert np.isnan(maps.slope_deg[40:60, 20:40]).all()
+
+
+def test_an_isolated_known_cell_is_unknown_not_safe():
+    heights = np.full((50, 50), np.nan)
+    heights[25, 25] = 1.0
+    assert H.hazard_maps(heights, CELL).code[25, 25] == H.UNKNOWN
+
+
+def test_roughness_limit_flags_a_rubble_field():
+    rng = np.random.default_rng(3)
+    heights = np.zeros((120, 120))
+    heights[30:90, 30:90] = (rng.random((60, 60)) < 0.5) * 0.09   # stones just below the step limit
+    maps = H.hazard_maps(heights, CELL)
+    rough = (maps.code & H.ROUGHNESS) > 0
+    assert rough[40:80, 40:80].all()
+    assert not rough[:10].any()
+
+
+# ---------------------------------------------------------------------------------- the simulated scene
+@pytest.fixture(scope="module")
+def scene():
+    """A rocky 8 x 8 m world without craters, and a TOF-like panorama from a rover near its centre:
+    rendered ranges along the true rays plus 5 mm noise, taken to the world with the calibrated
+    mounts (as RVS would), through the DEM chain at 3 cm."""
+    world = World.build(WorldConfig(seed=3, size_m=(8.0, 8.0), craters={"count": 0}))
+    rover = Rover(world, x=0.0, y=0.0, heading=0.3)
+    camera = PinholeCamera.from_fov(176, 144, 43.6)
+    rays = camera.ray_directions().astype(np.float64)
+    fov = (math.radians(43.6), 2 * math.atan(72 / camera.fy))
+    views = V.plan_views((-math.pi, math.pi), (math.radians(-65), math.radians(-20)), *fov, overlap=0.1)
+    rng = np.random.default_rng(0)
+    pose = g.RoverPose.from_matrix(rover.body_to_world)
+    mounts = rover.calibrated_mounts["tof"]
+    mount = g.SensorMount.from_offsets(rover.config.ptu_position_m, mounts.position_m, mounts.rotation_deg)
+    clouds = []
+    for pan, tilt in views:
+        view = render(world, rover.sensor_to_world("tof", math.degrees(pan), math.degrees(tilt)), camera, shadows=False)
+        ranges = view.range.astype(np.float64) + rng.normal(0.0, 0.005, view.range.shape)
+        clouds.append(D.view_points(rays * ranges[..., None], None, g.camera_to_world(pose, mount, pan, tilt)))
+    spec = GridSpec.covering((-4.0, 4.0), (-4.0, 4.0), 0.03)
+    footprint = g.footprint_polygon(pose, rover.config.body_length_m, rover.config.body_width_m)
+    dem = D.dem_from_points(np.concatenate(clouds), spec, footprint)
+    return world, rover, dem
+
+
+def test_simulated_dem_matches_the_truth_at_the_noise_level(scene):
+    world, rover, dem = scene
+    spec = dem.spec
+    truth = world.height_map(spec.cell, spec.x_range, spec.y_range)
+    rocky = world.obstacle_mask(0.005, spec.cell, spec.x_range, spec.y_range)
+    measured = dem.counts > 0
+    assert measured.mean() > 0.6
+    # Bare ground away from rocks: the error is the 5 mm noise (a little up: the highest point wins).
+    bare = measured & ~ndimage.binary_dilation(rocky)
+    error = (dem.heights - truth)[bare]
+    assert np.sqrt(np.mean(error ** 2)) < 0.008
+    assert 0.0 < np.mean(error) < 0.008
+    # Everywhere, rocks' sharp edges included (the cell's top against its centre): within 2 cm RMS.
+    assert np.sqrt(np.nanmean((dem.heights - truth) ** 2)) < 0.02
+    # No point of the rover's own body made it in, and its footprint is unknown.
+    xs, ys = spec.centres()
+    under = D.inside_polygon(np.c_[np.repeat(xs[None], len(ys), 0).ravel(), np.repeat(ys, len(xs))],
+                             rover.footprint())
+    assert (dem.counts.ravel()[under] == 0).all()
+
+
+def test_simulated_hazards_find_the_obstacles(scene):
+    world, _, dem = scene
+    spec = dem.spec
+    maps = H.hazard_maps(dem.heights, spec.cell)
+    known = maps.code != H.UNKNOWN
+    obstacles = world.obstacle_mask(0.10, spec.cell, spec.x_range, spec.y_range) & known
+    hazard = H.is_hazard(maps.code)
+    step = (maps.code & H.STEP) > 0
+    assert obstacles.sum() > 500
+    assert (step & obstacles).sum() / obstacles.sum() > 0.95          # step alone finds them
+    assert (hazard & obstacles).sum() / obstacles.sum() > 0.97
+    # Rock-free ground more than 0.3 m from any rock taller than 5 cm is almost all safe.
+    rocks = world.obstacle_mask(0.05, spec.cell, spec.x_range, spec.y_range)
+    clear = known & ~ndimage.binary_dilation(rocks, iterations=10)
+    assert clear.sum() > 20000
+    assert hazard[clear].mean() < 0.02
