@@ -655,6 +655,12 @@ class EmulatedCamera(Camera):
                 if self._state in ("armed", "exposing"):
                     self._state = "idle"
 
+    def set_frame_number(self, number: int) -> None:
+        """Make the next frame `number` (and draw its noise), so a resumed acquisition repeats the
+        frames an uninterrupted one would have taken."""
+        with self._status_lock:
+            self._frames = int(number) - 1
+
     def _on_trigger(self, at: float) -> None:
         """The trigger input: called by the trigger box at the pulse's simulated time."""
         with self._lock:

@@ -502,6 +502,11 @@ class Sr4000Emulator(Sr4000):
     def _close(self) -> None:
         pass
 
+    def set_frame_number(self, number: int) -> None:
+        """Make the next frame draw the noise of frame `number`, so an acquisition that is resumed
+        after a break or a restart repeats the frames an uninterrupted one would have taken."""
+        self._sequence = int(number)
+
     # -- acquisition ---------------------------------------------------------------------------
     def _acquire(self) -> TofFrame:
         registers = self._registers

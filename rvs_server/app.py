@@ -26,11 +26,13 @@ from drivers.sim.clock import SimClock
 from drivers.sim.config import WorldConfig
 
 from . import __version__
+from .calibration import Calibration, CalibrationConfig, build_calibration
 from .config import ConfigError, Settings, load_model, read_toml, validate_section
 from .devices import Devices, DevicesConfig
 from .dispatch import CommandSpec, Dispatcher, Module, Registry, Session
 from .jobs import JobCounter, RecoveryStore
 from .products import Products
+from .toolbox.geometry import RoverPose
 from .protocol import BadRequest
 from .transports.tcp import start_tcp
 from .transports.zmq import ZmqTransport
@@ -54,8 +56,8 @@ class ServerConfig(Settings):
 
 
 def all_modules() -> list[Module]:
-    from .modules import imaging, ptu, system
-    return [system.module, ptu.module, imaging.module]
+    from .modules import imaging, mapping, ptu, system
+    return [system.module, ptu.module, imaging.module, mapping.module]
 
 
 class ModuleConfig:
@@ -151,6 +153,7 @@ class Server:
         self.dispatcher = Dispatcher(self)
         self.devices = Devices(self.devices_config, self.clock, self.world_config, self.world_file)
         self.zmq: ZmqTransport | None = None
+        self._pose_estimate: RoverPose | None = None
         self.started = time.monotonic()
         self.log_handlers: list[logging.Handler] = []
         self.log_path = self._start_log()
@@ -169,6 +172,7 @@ class Server:
         seed = self.overrides.get("world_seed")
         self.world_config = load_model(d / "world.toml", WorldConfig, {"seed": seed} if seed is not None else None)
         self.world_file = Path(self.overrides["world"]) if self.overrides.get("world") else None
+        self.calibration_config = load_model(d / "calibration.toml", CalibrationConfig)
         if self.world_file is not None and not self.world_file.exists():
             raise ConfigError(f"--world {self.world_file}: no such file")
         self.module_configs = {m.name: load_module_config(d, m) for m in self.modules}
@@ -184,6 +188,29 @@ class Server:
 
     def module_settings(self, module: Module | None) -> Any:
         return self.module_configs[module.name].settings if module else None
+
+    def module_settings_of(self, name: str) -> Any:
+        return self.module_configs[name].settings
+
+    def calibration(self) -> Calibration:
+        """The calibration the maps use: from the file, or the simulated rover's calibrated mounts."""
+        testbed = self.devices.testbed if self.devices.simulated else None
+        return build_calibration(self.calibration_config, testbed)
+
+    @property
+    def pose_estimate(self) -> RoverPose:
+        """Where the server believes the rover stands. With simulated devices it starts from the
+        simulator's start pose (the initial pose is given); navigation updates it from then on."""
+        if self._pose_estimate is None:
+            if self.devices.simulated:
+                self._pose_estimate = RoverPose.from_matrix(self.devices.testbed.rover.body_to_world)
+            else:
+                self._pose_estimate = RoverPose(0.0, 0.0)
+        return self._pose_estimate
+
+    @pose_estimate.setter
+    def pose_estimate(self, pose: RoverPose) -> None:
+        self._pose_estimate = pose
 
     def command_defaults(self, spec: CommandSpec) -> dict[str, Any]:
         if spec.module is None:

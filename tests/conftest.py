@@ -177,6 +177,7 @@ diameter_range_m = [2.0, 3.0]
 def write_configs(config_dir: Path, extra: dict[str, str] | None = None) -> Path:
     """The repository's configs with a small world, optional files replaced, in a private directory."""
     shutil.copytree(REPO / "configs", config_dir, dirs_exist_ok=True)
+    shutil.copytree(REPO / "workflows", config_dir.parent / "workflows", dirs_exist_ok=True)
     (config_dir / "world.toml").write_text(SMALL_WORLD)
     for name, text in (extra or {}).items():
         (config_dir / name).write_text(text)

@@ -1,0 +1,335 @@
+"""The operations mapping workflows are made of (workflows/dem-*.yaml name them).
+
+Each operation is a small adapter: it takes earlier steps' results and its parameters, calls the
+toolbox (or, for acquisition, the devices), and returns plain dicts of arrays so its result can be
+checkpointed. Acquisition checkpoints every view, so `break` loses at most the view being taken.
+"""
+from __future__ import annotations
+
+import math
+from typing import Any, Literal
+
+import numpy as np
+from pydantic import Field
+
+from .config import Range
+from .toolbox import dem as dem_tools
+from .toolbox import hazard as hazard_tools
+from .toolbox.geometry import Intrinsics, RoverPose, camera_to_world, footprint_polygon, relative_pose
+from .toolbox.ortho import merge_views, ortho_image
+from .toolbox.stereo import SgbmConfig, StereoCalibration, rectification, stereo_points
+from .toolbox.views import plan_views
+from .workflow import Operations, StepContext, StepParams
+
+operations = Operations()
+
+SR4000_FOV_DEG = (43.6, 34.6)
+NO_DATA_DISTANCE = 0
+
+
+# ---------------------------------------------------------------------------------------------
+# Views and acquisition
+
+
+class PlanViewsParams(StepParams):
+    pan: Range = (-180.0, 180.0)
+    tilt: Range = (-45.0, -15.0)
+    overlap: float = Field(0.15, ge=0.0, lt=0.9)
+    sensor: Literal["tof", "stereo"] = "tof"
+
+
+@operations.register("views.plan", PlanViewsParams)
+def plan(step: StepContext, params: PlanViewsParams) -> dict[str, Any]:
+    """PTU positions covering the pan and tilt ranges with the sensor's field of view and overlap."""
+    hfov, vfov = sensor_fov_deg(step.job, params.sensor)
+    views = plan_views(tuple(np.radians(params.pan)), tuple(np.radians(params.tilt)), math.radians(hfov),
+                       math.radians(vfov), params.overlap)
+    wanted = np.degrees(np.asarray(views, dtype=np.float64)).reshape(-1, 2)
+    wanted[:, 0] = (wanted[:, 0] + 180.0) % 360.0 - 180.0
+    reachable = within_unit_limits(step.job, wanted)
+    return {"pan_tilt_deg": reachable, "planned_deg": wanted, "fov_deg": np.array([hfov, vfov])}
+
+
+def within_unit_limits(job: Any, views: np.ndarray) -> np.ndarray:
+    """Views the PTU cannot reach are moved to its nearest limit: a D46 pans +-159 degrees, so the
+    directions straight behind the rover are seen by the outermost views' field of view only."""
+    limits = job.devices.ptu.require().limits
+    clipped = views.copy()
+    clipped[:, 0] = np.clip(clipped[:, 0], limits.pan_min_deg, limits.pan_max_deg)
+    clipped[:, 1] = np.clip(clipped[:, 1], limits.tilt_min_deg, limits.tilt_max_deg)
+    _, first = np.unique(np.round(clipped, 3), axis=0, return_index=True)
+    return clipped[np.sort(first)]
+
+
+def sensor_fov_deg(job: Any, sensor: str) -> tuple[float, float]:
+    if sensor == "tof":
+        k = job.server.calibration().tof_intrinsics
+    else:
+        k = stereo_intrinsics(job)[0]
+    return (math.degrees(2 * math.atan((k.width / 2) / k.fx)), math.degrees(2 * math.atan((k.height / 2) / k.fy)))
+
+
+def stereo_intrinsics(job: Any) -> tuple[Intrinsics, Intrinsics]:
+    pair = job.devices.cameras.require()
+    mode = job.devices.cameras.config.resolution
+    out = []
+    for role in ("left", "right"):
+        k = pair.camera(role).intrinsics(mode)
+        out.append(Intrinsics(k.width, k.height, k.fx, k.fy, k.cx, k.cy, k.k1, k.k2))
+    return out[0], out[1]
+
+
+def point_ptu(job: Any, pan: float, tilt: float) -> tuple[float, float]:
+    """Move the PTU and wait until it stands; the angles it reports are what the maps use."""
+    device = job.devices.ptu
+    driver = device.require()
+    driver.move_to(pan, tilt, speed_deg_s=job.server.module_settings_of("ptu").default_speed_deg_s)
+    driver.wait_until_stopped(timeout_s=120.0)
+    return device.read_position()
+
+
+class AcquireTofParams(StepParams):
+    frames: int = Field(1, ge=1, le=50)
+    min_confidence: int = Field(0, ge=0, le=65535)
+    settle_frames: int = Field(10, ge=0, le=100)
+
+
+@operations.register("acquire.tof", AcquireTofParams, inputs=("views",))
+def acquire_tof(step: StepContext, params: AcquireTofParams, views: dict) -> dict[str, Any]:
+    """For each view: point the PTU, grab (averaged) SR4000 frames, keep the points and their pose."""
+    from drivers.sr4000 import grab
+    job = step.job
+    camera = job.devices.tof.require()
+    calibration = job.server.calibration()
+    pose = job.server.pose_estimate
+    taken = []
+    targets = views["pan_tilt_deg"]
+    for index, (pan, tilt) in enumerate(targets):
+        saved = step.load_partial(f"view{index:03d}")
+        if saved is None:
+            step.safe_point()
+            step.progress(index / len(targets), f"view {index + 1}/{len(targets)} at pan {pan:.1f} tilt {tilt:.1f}")
+            measured = point_ptu(job, float(pan), float(tilt))
+            _repeatable(camera, index, step.load_partial(f"exposure{index - 1:03d}"))
+            result = grab(camera, frames=params.frames, min_confidence=params.min_confidence,
+                          settle_frames=params.settle_frames)
+            frame = result.frame
+            pose_cw = camera_to_world(pose, calibration.mounts["tof"], math.radians(measured[0]),
+                                      math.radians(measured[1]))
+            saved = {"points_camera": frame.xyz().astype(np.float32), "valid": result.defined,
+                     "intensity": frame.amplitude.astype(np.float32),
+                     "pan_tilt_deg": np.array(measured), "camera_to_world": pose_cw,
+                     "true_camera_to_world": _true_pose(job, camera)}
+            step.save_partial(f"view{index:03d}", saved)
+            step.save_partial(f"exposure{index:03d}", {"integration_time": int(camera.integration_time())})
+        taken.append(saved)
+    return {"sensor": "tof", "views": taken}
+
+
+def _repeatable(camera: Any, index: int, exposure: dict | None) -> None:
+    """An emulated camera draws view `index`'s noise, from the exposure the previous view left,
+    so a resumed panorama equals an uninterrupted one."""
+    if hasattr(camera, "set_frame_number"):
+        camera.set_frame_number(100_000 * (index + 1))
+    if exposure is not None:
+        camera.set_integration_time(exposure["integration_time"])
+
+
+def _true_pose(job: Any, camera: Any) -> np.ndarray:
+    pose = getattr(camera, "last_pose", None)
+    return np.asarray(pose, dtype=np.float64) if pose is not None else np.full((4, 4), np.nan)
+
+
+@operations.register("acquire.stereo", inputs=("views",))
+def acquire_stereo(step: StepContext, params: StepParams, views: dict) -> dict[str, Any]:
+    """For each view: point the PTU, grab both cameras on one trigger, keep the images and poses."""
+    job = step.job
+    pair = job.devices.cameras.require()
+    calibration = job.server.calibration()
+    pose = job.server.pose_estimate
+    timeout = job.devices.cameras.config.grab_timeout_s
+    taken = []
+    targets = views["pan_tilt_deg"]
+    for index, (pan, tilt) in enumerate(targets):
+        saved = step.load_partial(f"view{index:03d}")
+        if saved is None:
+            step.safe_point()
+            step.progress(index / len(targets), f"view {index + 1}/{len(targets)} at pan {pan:.1f} tilt {tilt:.1f}")
+            measured = point_ptu(job, float(pan), float(tilt))
+            for role in ("left", "right"):
+                camera = pair.camera(role)
+                if hasattr(camera, "set_frame_number"):
+                    camera.set_frame_number(100_000 * (index + 1))
+            frames = pair.grab("both", timeout_s=timeout)
+            pan_r, tilt_r = math.radians(measured[0]), math.radians(measured[1])
+            saved = {"left": _grey(frames["left"].image), "right": _grey(frames["right"].image),
+                     "pan_tilt_deg": np.array(measured),
+                     "left_to_world": camera_to_world(pose, calibration.mounts["left"], pan_r, tilt_r),
+                     "right_to_world": camera_to_world(pose, calibration.mounts["right"], pan_r, tilt_r)}
+            step.save_partial(f"view{index:03d}", saved)
+        taken.append(saved)
+    return {"sensor": "stereo", "views": taken}
+
+
+def _grey(image: np.ndarray) -> np.ndarray:
+    return image if image.ndim == 2 else np.round(image.mean(axis=2)).astype(np.uint8)
+
+
+class StereoParams(StepParams):
+    num_disparities: int = Field(128, ge=16, le=512, multiple_of=16)
+    block_size: int = Field(5, ge=3, le=21)
+    max_range_m: float = Field(8.0, gt=0, description="points farther than this are dropped (depth error grows as z^2)")
+
+
+@operations.register("stereo.points", StereoParams, inputs=("acquired",))
+def stereo_to_points(step: StepContext, params: StereoParams, acquired: dict) -> dict[str, Any]:
+    """Rectify each pair, match with SGBM, and turn disparity into points in the left camera frame."""
+    left_k, right_k = stereo_intrinsics(step.job)
+    config = SgbmConfig(num_disparities=params.num_disparities, block_size=params.block_size)
+    out = []
+    for index, view in enumerate(acquired["views"]):
+        step.safe_point()
+        step.progress(index / len(acquired["views"]), f"matching view {index + 1}")
+        calib = StereoCalibration(left_k, right_k, relative_pose(view["left_to_world"], view["right_to_world"]))
+        rect = rectification(calib)
+        points, valid = stereo_points(view["left"], view["right"], rect, config)
+        valid &= points[..., 2] < params.max_range_m
+        out.append({"points_camera": points.astype(np.float32), "valid": valid,
+                    "intensity": view["left"].astype(np.float32), "pan_tilt_deg": view["pan_tilt_deg"],
+                    "camera_to_world": view["left_to_world"], "true_camera_to_world": np.full((4, 4), np.nan)})
+    return {"sensor": "stereo", "views": out}
+
+
+# ---------------------------------------------------------------------------------------------
+# Points, DEM, hazards, ortho-image
+
+
+class ViewPointsParams(StepParams):
+    max_blob_pixels: int = Field(256, ge=0, description="isolated groups up to this size are artifacts")
+    max_relative_jump: float = Field(0.05, gt=0, le=1, description="range jump that separates surfaces")
+    max_range_m: float = Field(4.8, gt=0, description="drop points farther than this from the camera")
+
+
+@operations.register("dem.view_points", ViewPointsParams, inputs=("acquired",))
+def view_points(step: StepContext, params: ViewPointsParams, acquired: dict) -> dict[str, Any]:
+    """Each view's trusted points, isolated blobs removed, in the world frame; all views stacked."""
+    config = dem_tools.DemConfig(max_blob_pixels=params.max_blob_pixels, max_relative_jump=params.max_relative_jump)
+    clouds, per_view = [], []
+    for view in acquired["views"]:
+        points = view["points_camera"]
+        valid = view["valid"] & (np.linalg.norm(np.nan_to_num(points, nan=np.inf), axis=-1) <= params.max_range_m)
+        world = dem_tools.view_points(points, valid, view["camera_to_world"], config)
+        clouds.append(world)
+        per_view.append(len(world))
+    return {"points": np.vstack(clouds) if clouds else np.empty((0, 3)), "per_view": np.array(per_view)}
+
+
+class RemoveBodyParams(StepParams):
+    margin_m: float = Field(0.05, ge=0, le=1)
+
+
+@operations.register("dem.remove_body", RemoveBodyParams, inputs=("points",))
+def remove_body(step: StepContext, params: RemoveBodyParams, points: dict) -> dict[str, Any]:
+    """Points on the rover's own body (its footprint, grown by a margin) are not terrain."""
+    calibration = step.job.server.calibration()
+    footprint = footprint_polygon(step.job.server.pose_estimate, calibration.rover_length_m,
+                                  calibration.rover_width_m)
+    kept = dem_tools.remove_rover_body(points["points"], footprint, params.margin_m)
+    return {"points": kept, "removed": int(len(points["points"]) - len(kept)), "footprint": footprint}
+
+
+class GridParams(StepParams):
+    cell: float = Field(0.05, ge=0.005, le=1.0, description="cell size, metres")
+    max_extent_m: float = Field(12.0, gt=0, description="the grid spans at most this far from the rover")
+
+
+@operations.register("dem.grid", GridParams, inputs=("points",))
+def grid(step: StepContext, params: GridParams, points: dict) -> dict[str, Any]:
+    """Direct reconstruction: every point to its cell, the highest wins; no data stays NaN."""
+    cloud = points["points"]
+    pose = step.job.server.pose_estimate
+    near = np.all(np.abs(cloud[:, :2] - [pose.x, pose.y]) <= params.max_extent_m, axis=1)
+    cloud = cloud[near]
+    if len(cloud) == 0:
+        raise ValueError("no points to make a DEM from (every view was empty or filtered out)")
+    spec = dem_tools.grid_covering(cloud, params.cell, margin=params.cell)
+    dem = dem_tools.points_to_dem(cloud, spec)
+    return {"spec": dem.spec, "heights": dem.heights, "counts": dem.counts}
+
+
+class FillParams(StepParams):
+    max_reach_cells: float = Field(3.0, ge=0, le=50, description="holes are filled only this close to data")
+
+
+@operations.register("dem.fill_holes", FillParams, inputs=("dem",))
+def fill_holes(step: StepContext, params: FillParams, dem: dict) -> dict[str, Any]:
+    """Interpolate across small enclosed gaps only: the unseen stays unknown."""
+    filled = dem_tools.fill_small_holes(dem_tools.Dem(dem["spec"], dem["heights"], dem["counts"]),
+                                        params.max_reach_cells)
+    return {"spec": filled.spec, "heights": filled.heights, "counts": filled.counts}
+
+
+class MergeParams(StepParams):
+    sensor: Literal["tof", "stereo", "any"] = "any"
+
+
+@operations.register("dem.merge_last", MergeParams, inputs=("dem",))
+def merge_last(step: StepContext, params: MergeParams, dem: dict) -> dict[str, Any]:
+    """Mosaic the new DEM with the last DEM product (more points per cell wins where they overlap)."""
+    from .rasters import read_geotiff
+    pattern = {"tof": "dem-(full|update)-tof", "stereo": "dem-(full|update)", "any": "dem-.*"}[params.sensor]
+    last = step.job.server.products.latest(pattern)
+    if last is None:
+        return {**dem, "merged_with": ""}
+    heights, spec = read_geotiff(last.path / "dem.tif")
+    counts_path = last.path / "counts.tif"
+    from .rasters import read_geotiff as read
+    counts = read(counts_path)[0].astype(np.int32) if counts_path.exists() else np.isfinite(heights).astype(np.int32)
+    merged = dem_tools.mosaic([dem_tools.Dem(spec, heights.astype(np.float32), counts),
+                               dem_tools.Dem(dem["spec"], dem["heights"], dem["counts"])])
+    return {"spec": merged.spec, "heights": merged.heights, "counts": merged.counts, "merged_with": last.name}
+
+
+class HazardParams(StepParams):
+    slope_limit_deg: float = Field(20.0, gt=0, lt=90)
+    plane_radius: float = Field(0.25, gt=0)
+    roughness_limit: float = Field(0.04, gt=0)
+    step_limit: float = Field(0.10, gt=0)
+    step_radius: float = Field(0.10, gt=0)
+    ground_radius: float = Field(0.5, gt=0)
+    step_min_cells: int = Field(5, ge=1)
+
+
+@operations.register("hazard.maps", HazardParams, inputs=("dem",))
+def hazards(step: StepContext, params: HazardParams, dem: dict) -> dict[str, Any]:
+    """Slope, step and roughness from local plane fits, and the hazard map; unknown stays unknown."""
+    config = hazard_tools.HazardConfig(**params.model_dump())
+    maps = hazard_tools.hazard_maps(dem["heights"], dem["spec"].cell, config)
+    return {"slope_deg": maps.slope_deg, "step": maps.step, "roughness": maps.roughness, "code": maps.code}
+
+
+@operations.register("ortho.views", inputs=("dem", "acquired"))
+def ortho(step: StepContext, params: StepParams, dem: dict, acquired: dict) -> dict[str, Any]:
+    """Each view's intensity image draped on the DEM through the calibration; the best view per cell."""
+    job = step.job
+    if acquired["sensor"] == "tof":
+        intrinsics = job.server.calibration().tof_intrinsics
+        views = [(v["intensity"], v["camera_to_world"], _depth_of(v)) for v in acquired["views"]]
+    else:
+        intrinsics = stereo_intrinsics(job)[0]
+        views = [(v["intensity"], v["camera_to_world"], None) for v in acquired["views"]]
+    draped = []
+    for index, (image, pose, depth) in enumerate(views):
+        step.safe_point()
+        step.progress(index / len(views), f"draping view {index + 1}")
+        draped.append(ortho_image(dem["heights"], dem["spec"], image, intrinsics, pose, depth_image=depth))
+    return {"intensity": merge_views(draped).astype(np.float32)}
+
+
+def _depth_of(view: dict) -> np.ndarray:
+    z = view["points_camera"][..., 2].astype(np.float64)
+    return np.where(view["valid"] & np.isfinite(z), z, np.nan)
+
+
+def current_pose(server: Any) -> RoverPose:
+    return server.pose_estimate
