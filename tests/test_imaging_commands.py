@@ -76,3 +76,18 @@ def test_a_missing_vendor_library_is_a_precise_503(server_factory, tmp_path):
         assert status["dev.tof"] == "fault"
         reply = c.command("grab-tof --output a")
         assert "ERR 503 device tof is fault" in reply and "no-such-libmesasr.so" in reply
+
+
+def test_a_saved_world_is_loaded_with_world_file(server_factory, tmp_path):
+    import subprocess
+    import sys
+    from conftest import REPO, SMALL_WORLD
+    (tmp_path / "w.toml").write_text(SMALL_WORLD.replace("seed = 3", "seed = 9"))
+    saved = tmp_path / "scene.npz"
+    subprocess.run([sys.executable, "-m", "drivers.sim", "save", str(saved), "--config", str(tmp_path / "w.toml")],
+                   cwd=REPO, check=True, capture_output=True, timeout=120)
+    server = server_factory(args=["--world", str(saved)])
+    with server.connect() as c:
+        reply = pairs(c.command("grab-tof --output fromfile", timeout=120))
+    state = json.loads((server.data_dir / "products" / reply["product"] / "truth" / "state.json").read_text())
+    assert state["world"]["file"] == str(saved)

@@ -22,7 +22,7 @@ from ..jobs import JobContext
 from ..mapping_ops import operations
 from ..protocol import BadRequest
 from ..rasters import write_geotiff, write_png
-from ..toolbox.colour import categorical, colourise, with_colour_bar, with_key, with_title
+from ..toolbox.colour import categorical, colourise, upscale, with_colour_bar, with_key, with_title
 from ..toolbox.grid import GridSpec
 from ..toolbox.hazard import HAZARD, ROUGHNESS, SLOPE, STEP, UNKNOWN
 from ..workflow import WorkflowError, load_workflow, resolve_params, run_workflow
@@ -144,7 +144,8 @@ def hazard_picture(code: np.ndarray) -> np.ndarray:
 
 
 def _north_up(grid_rgb: np.ndarray) -> np.ndarray:
-    return np.ascontiguousarray(np.flipud(grid_rgb))
+    """A grid as a picture: north up, small grids enlarged so a cell is a few pixels."""
+    return upscale(np.ascontiguousarray(np.flipud(grid_rgb)), 480)
 
 
 def _legend_title(spec: GridSpec) -> str:
@@ -180,11 +181,15 @@ def write_maps(ctx: JobContext, product: Any, results: dict[str, Any]) -> dict[s
         intensity = results["ortho"]["intensity"]
         top = float(np.nanpercentile(intensity, 99)) if np.isfinite(intensity).any() else 1.0
         pictures["ortho.png"] = with_colour_bar(_north_up(colourise(intensity, 0, top, "gray")), 0, top,
-                                                "ortho-image intensity")
+                                                "ortho-image intensity", cmap="gray")
         write_geotiff(product.add("ortho.tif", "ortho-image intensity (float32 GeoTIFF, NaN unseen)"),
                       intensity.astype(np.float32), spec, "ortho-image")
     for name, rgb in pictures.items():
         write_png(product.add(name, f"{name[:-4]} picture with legend"), with_title(rgb, f"{product.name}: {title}"))
+    truth_picture = truth_obstacle_picture(ctx, spec)
+    panels = [pictures["dem.png"], pictures.get("ortho.png"), pictures["hazard.png"], truth_picture]
+    write_png(product.add("overview.png", "DEM, ortho-image, hazard map and (simulated) true obstacles side by side"),
+              with_title(side_by_side([p for p in panels if p is not None]), f"{product.name}: {title}"))
     cloud = results["points"]["points"] if "points" in results else None
     if "body" in results:
         cloud = results["body"]["points"]
@@ -202,6 +207,29 @@ def write_maps(ctx: JobContext, product: Any, results: dict[str, Any]) -> dict[s
     hazardous = float(np.mean((hazard["code"] != UNKNOWN) & ((hazard["code"] & HAZARD) != 0)))
     return {"cells": f"{spec.rows}x{spec.cols}", "cell": spec.cell, "known": f"{observed:.3f}",
             "hazardous": f"{hazardous:.3f}", "views": len(acquired["views"]) if acquired else 0}
+
+
+def truth_obstacle_picture(ctx: JobContext, spec: GridSpec) -> np.ndarray | None:
+    devices = ctx.devices
+    if not (devices.simulated and devices.testbed.ready):
+        return None
+    step = ctx.settings.truth_step
+    obstacles = devices.testbed.world.obstacle_mask(step, spec.cell, spec.x_range, spec.y_range)
+    rgb = categorical(obstacles[:spec.rows, :spec.cols].astype(np.uint8), {0: (70, 160, 70), 1: (220, 60, 50)})
+    return with_key(_north_up(rgb), [("clear", (70, 160, 70)), (f"rock > {step} m", (220, 60, 50))],
+                    "truth: obstacles")
+
+
+def side_by_side(panels: list[np.ndarray], gap: int = 8) -> np.ndarray:
+    """Panels left to right, each enlarged to a readable size, bottoms padded to one height."""
+    height = max(p.shape[0] for p in panels)
+    padded = [np.concatenate([p, np.full((height - p.shape[0], p.shape[1], 3), 20, np.uint8)], axis=0)
+              for p in panels]
+    spacer = np.full((height, gap, 3), 20, np.uint8)
+    out = [padded[0]]
+    for panel in padded[1:]:
+        out += [spacer, panel]
+    return np.concatenate(out, axis=1)
 
 
 def write_truth_grids(ctx: JobContext, product: Any, spec: GridSpec, acquired: dict | None) -> None:

@@ -1,6 +1,18 @@
-"""Figures for the SR4000 emulator: xyz error vs truth per range band on 3 seeded scenes."""
-import time, numpy as np, cv2
-from tests.test_sr4000 import mast_pose, range_errors, UNFILTERED
+"""Figures for the SR4000 emulator: xyz error vs truth per range band on 3 seeded scenes, the share
+of low-confidence pixels, and the time per frame beside the bare render.
+
+    .venv/bin/python tests/bench/measure_tof.py
+"""
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[2]
+sys.path[:0] = [str(REPO), str(REPO / "tests")]
+from test_sr4000 import mast_pose, range_errors, UNFILTERED
 from drivers.sim.world import World, WorldConfig
 from drivers.sim.clock import SimClock
 from drivers.sim.render import render
