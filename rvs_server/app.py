@@ -56,8 +56,8 @@ class ServerConfig(Settings):
 
 
 def all_modules() -> list[Module]:
-    from .modules import imaging, mapping, ptu, system
-    return [system.module, ptu.module, imaging.module, mapping.module]
+    from .modules import imaging, mapping, navigation, ptu, system
+    return [system.module, ptu.module, imaging.module, mapping.module, navigation.module]
 
 
 class ModuleConfig:

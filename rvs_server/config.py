@@ -153,7 +153,8 @@ def describe_default(info: FieldInfo) -> str:
 
 
 def option_name(field_name: str) -> str:
-    return "--" + field_name.replace("_", "-")
+    """`speed` -> `--speed`; a field named after a Python keyword (`from_`) is `--from`."""
+    return "--" + field_name.rstrip("_").replace("_", "-")
 
 
 def describe_validation_error(exc: ValidationError, model: type[BaseModel], where: str,
@@ -258,6 +259,8 @@ def bind_tokens(command: str, tokens: tuple[str, ...] | list[str], config: type[
             continue
         name, has_value, inline = token[2:].partition("=")
         field_name = name.replace("-", "_")
+        if field_name not in fields and field_name + "_" in fields:  # --from binds to from_
+            field_name += "_"
         negated = False
         if field_name not in fields and field_name.startswith("no_") and _is_flag(fields.get(field_name[3:])):
             field_name, negated = field_name[3:], True

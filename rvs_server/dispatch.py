@@ -20,7 +20,7 @@ from typing import Any, Awaitable, Callable, Literal, Mapping, Protocol
 
 from drivers.errors import DeviceFault, DeviceTimeout
 
-from .config import CommandConfig, Settings, bind_tokens, build_config
+from .config import CommandConfig, Settings, bind_tokens, build_config, option_name, type_label
 from .jobs import Job, JobContext, JobInterrupted, RecoverySet
 from .protocol import (BadRequest, Busy, CommandLine, DeviceError, InternalError, Interrupted, RvsError,
                        Sleeping, Timeout, Unauthorized, UnknownCommand, WrongMode)
@@ -64,10 +64,9 @@ class CommandSpec:
         for name, info in self.config.model_fields.items():
             if name in self.positionals:
                 continue
-            option = "--" + name.replace("_", "-")
-            from .config import type_label
+            option = option_name(name)
             label = type_label(info)
-            text = option if label == "flag" else f"{option} {name.upper()}"
+            text = option if label == "flag" else f"{option} {name.rstrip('_').upper()}"
             words.append(text if info.is_required() else f"[{text}]")
         if self.raw:
             words.append("...")

@@ -1,0 +1,199 @@
+"""Path planning on the maps: plan-path, and pose (the GNC telling the server where the rover is).
+
+plan-path fuses a global map (a blank one spanning start and goal; unknown until seen) with the
+latest local hazard map at their own cell sizes, plans the exact least-cost path with A*, simplifies
+it into straight segments that stay clear of the grown hazards, and hands out only the part inside
+the local map and at least a margin from its border. The product holds the cost map with the path
+and waypoints drawn on it, the same on the ortho-image, and the waypoints as JSON and CSV.
+"""
+from __future__ import annotations
+
+import csv
+import math
+from pathlib import Path
+from typing import Any, Literal
+
+import cv2
+import numpy as np
+from pydantic import Field
+from scipy.ndimage import binary_fill_holes
+
+from ..config import CommandConfig, Point, SafeName, Settings
+from ..dispatch import Call, Module
+from ..jobs import JobContext
+from ..protocol import BadRequest, WrongMode
+from ..rasters import read_geotiff, write_geotiff, write_png
+from ..toolbox.colour import colourise, upscale, with_colour_bar, with_title
+from ..toolbox.geometry import RoverPose
+from ..toolbox.grid import GridSpec
+from ..toolbox.hazard import HAZARD, UNKNOWN
+from ..toolbox.planning import (MapLayers, PlanningParams, blank_map_spanning, distance_to_border,
+                                drivable_prefix, fuse_maps, plan_path, terrain_cost)
+
+
+class NavigationSettings(Settings):
+    weight: float = Field(0.5, ge=0, le=1, description="1: shortest path; 0: easiest ground")
+    rover_radius_m: float = Field(0.3, gt=0, description="hazards grow by this plus the margin")
+    hazard_margin_m: float = Field(0.1, ge=0)
+    unknown_policy: Literal["forbid", "allow", "penalize"] = "penalize"
+    unknown_cost: float = Field(0.5, ge=0)
+    max_deviation_m: float = Field(0.1, gt=0, description="straight segments stay this close to the A* path")
+    border_margin_m: float = Field(0.5, ge=0, description="waypoints handed out keep this far from the "
+                                   "local map's border")
+    global_cell_m: float = Field(0.1, gt=0, description="cell of the blank global map")
+    global_margin_m: float = Field(3.0, ge=0, description="the global map spans start and goal plus this")
+    slope_limit_deg: float = Field(20.0, gt=0, lt=90, description="terrain cost 1 at this slope")
+    roughness_limit: float = Field(0.04, gt=0, description="terrain cost 1 at this roughness")
+
+
+module = Module("navigation", settings=NavigationSettings, summary="path planning and the rover's pose")
+
+
+class PlanPathConfig(CommandConfig):
+    from_: Point | None = Field(None, description="start X,Y in the world frame, metres; default the rover")
+    to: Point = Field(..., description="goal X,Y in the world frame, metres")
+    weight: float | None = Field(None, ge=0, le=1, description="distance weight w; default navigation.toml")
+    sensor: Literal["tof", "stereo"] = Field("tof", description="whose latest map to plan on")
+    output: SafeName | None = None
+
+
+class PoseConfig(CommandConfig):
+    pose: str = Field(..., description="X,Y,HEADING: metres, metres, degrees counter-clockwise from east")
+
+
+LAST_MAP = {"tof": "dem-(full|update)-tof", "stereo": "dem-(full|update)"}
+
+
+def local_map(server: Any, sensor: str) -> tuple[MapLayers, Any, dict[str, np.ndarray]]:
+    """The latest hazard map of the sensor as planning layers, its product, and its raw layers."""
+    product = server.products.latest(LAST_MAP[sensor])
+    if product is None:
+        raise WrongMode(f"no {sensor} map yet: run {'dem-full-tof' if sensor == 'tof' else 'dem-full'} first")
+    code, spec = read_geotiff(product.path / "hazard.tif")
+    slope = read_geotiff(product.path / "slope.tif")[0]
+    roughness = read_geotiff(product.path / "roughness.tif")[0]
+    settings: NavigationSettings = server.module_configs["navigation"].settings
+    unknown = code == UNKNOWN
+    hazard = ~unknown & ((code.astype(np.int64) & HAZARD) != 0)
+    cost = terrain_cost(slope, settings.slope_limit_deg, roughness, settings.roughness_limit)
+    cost = np.where(unknown | hazard, np.nan, np.nan_to_num(cost, nan=0.0))
+    # The rover stands on its own footprint, which no sensor sees: that ground is known and safe.
+    under = _under_rover(spec, server.pose_estimate, settings.rover_radius_m)
+    unknown &= ~under
+    cost = np.where(under & np.isnan(cost) & ~hazard, 0.0, cost)
+    layers = MapLayers(spec, np.where(unknown, np.nan, cost), hazard, unknown)
+    ortho = product.path / "ortho.tif"
+    extra = {"ortho": read_geotiff(ortho)[0] if ortho.exists() else np.full(spec.shape, np.nan)}
+    return layers, product, extra
+
+
+def _under_rover(spec: GridSpec, pose: RoverPose, radius: float) -> np.ndarray:
+    xs, ys = spec.centres()
+    return np.hypot(xs[None, :] - pose.x, ys[:, None] - pose.y) <= radius
+
+
+@module.job("plan-path", PlanPathConfig, resumable=False)
+def plan_path_command(ctx: JobContext, cfg: PlanPathConfig) -> dict[str, Any]:
+    """Plan a safe path on the current maps; cost map, path and waypoints as pictures, JSON and CSV."""
+    server = ctx.server
+    settings: NavigationSettings = ctx.settings
+    pose = server.pose_estimate
+    start = cfg.from_ or (pose.x, pose.y)
+    ctx.progress(10, f"reading the latest {cfg.sensor} map")
+    local, source, extra = local_map(server, cfg.sensor)
+    fused = fuse_maps(blank_map_spanning(start, cfg.to, settings.global_cell_m, settings.global_margin_m, [local]),
+                      [local])
+    params = PlanningParams(weight=settings.weight if cfg.weight is None else cfg.weight,
+                            rover_radius_m=settings.rover_radius_m, hazard_margin_m=settings.hazard_margin_m,
+                            unknown_policy=settings.unknown_policy, unknown_cost=settings.unknown_cost,
+                            max_deviation_m=settings.max_deviation_m)
+    ctx.progress(30, "planning")
+    plan = plan_path(fused, start, cfg.to, params)
+    product = ctx.product(cfg, name=cfg.output)
+    product.note("inputs", [{"map": source.name, "path": str(source.path)}])
+    # The border is the local map's outer edge: holes inside it (the blind ring around the mast,
+    # shadows behind rocks) are unknown to the planner but do not end the drivable part.
+    border = distance_to_border(binary_fill_holes(~local.unknown), local.spec.cell)
+    drivable = drivable_prefix(plan.waypoints, local.spec, border, settings.border_margin_m) if plan.found else None
+    ctx.progress(70, "writing")
+    write_plan(product, fused, plan, drivable, local, extra["ortho"], start, cfg.to)
+    result = ctx.finish_product(product)
+    if not plan.found:
+        raise BadRequest(f"no path: {plan.reason}: {plan.message}; product={product.name}",
+                         data={"product": product.name, "reason": plan.reason})
+    return {**result, "waypoints": len(plan.waypoints), "drivable": len(drivable.waypoints),
+            "complete": int(drivable.complete), "length": f"{plan.length_m:.2f}", "cost": f"{plan.cost:.3f}",
+            "map": source.name}
+
+
+def write_plan(product: Any, fused: MapLayers, plan: Any, drivable: Any, local: MapLayers, ortho: np.ndarray,
+               start: tuple[float, float], goal: tuple[float, float]) -> None:
+    spec = fused.spec
+    cost = np.where(plan.hazards.mask, np.nan, plan.cost_grid).astype(np.float32)
+    write_geotiff(product.add("cost.tif", "planning cost per cell (NaN: grown hazard)"), cost, spec)
+    finite = cost[np.isfinite(cost)]
+    high = float(np.percentile(finite, 99)) if finite.size else 1.0
+    rgb = colourise(cost, 0.0, high, "viridis")
+    rgb[fused.unknown] = (95, 95, 95)
+    rgb[plan.hazards.mask] = (200, 50, 40)
+    rgb[fused.hazard] = (120, 20, 20)
+    picture = draw_path(rgb, spec, plan, drivable, start, goal)
+    write_png(product.add("plan.png", "cost map, unknown (grey), grown hazards (red), A* path (white), waypoints, drivable part (cyan)"),
+              with_title(with_colour_bar(picture, 0.0, high, "cost per metre; grey: unknown; red: hazard grown by the rover",
+                                         cmap="viridis"), f"{product.name}: plan-path"))
+    top = float(np.nanpercentile(ortho, 99)) if np.isfinite(ortho).any() else 1.0
+    picture = draw_path(colourise(ortho, 0.0, top, "gray"), local.spec, plan, drivable, start, goal)
+    write_png(product.add("plan-ortho.png", "the path on the ortho-image of the local map"),
+              with_title(picture, f"{product.name}: path on the ortho-image"))
+    rows = [{"index": i, "x": float(x), "y": float(y), "drivable": bool(drivable is not None and i < len(drivable.waypoints))}
+            for i, (x, y) in enumerate(plan.waypoints)]
+    product.write_json("waypoints.json", {"found": plan.found, "reason": plan.reason, "message": plan.message,
+                                          "cost": plan.cost if plan.found else None,
+                                          "length_m": plan.length_m if plan.found else None,
+                                          "waypoints": rows,
+                                          "drivable": drivable.waypoints.tolist() if drivable is not None else [],
+                                          "frame": "world: x east, y north, metres"},
+                       "waypoints in world coordinates, and the drivable prefix")
+    with open(product.add("waypoints.csv", "waypoints: index, x, y, drivable"), "w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=["index", "x", "y", "drivable"])
+        writer.writeheader()
+        writer.writerows(rows)
+
+
+def draw_path(rgb: np.ndarray, spec: GridSpec, plan: Any, drivable: Any, start, goal) -> np.ndarray:
+    """The path, waypoints, start and goal drawn on a grid picture (north up, enlarged)."""
+    factor = max(1, int(math.ceil(600 / max(rgb.shape[:2]))))
+    image = np.ascontiguousarray(upscale(np.flipud(rgb), 600))
+
+    def pixel(xy) -> tuple[int, int]:
+        col = (xy[0] - spec.origin_x) / spec.cell * factor
+        row = (spec.rows - (xy[1] - spec.origin_y) / spec.cell) * factor
+        return int(round(col)), int(round(row))
+
+    if plan.found and len(plan.cells):
+        path_xy = np.column_stack([spec.origin_x + (plan.cells[:, 1] + 0.5) * spec.cell,
+                                   spec.origin_y + (plan.cells[:, 0] + 0.5) * spec.cell])
+        cv2.polylines(image, [np.array([pixel(p) for p in path_xy], np.int32)], False, (255, 255, 255), 1)
+        for point in plan.waypoints:
+            cv2.circle(image, pixel(point), 3, (255, 210, 0), -1)
+        if drivable is not None and len(drivable.waypoints) > 1:
+            cv2.polylines(image, [np.array([pixel(p) for p in drivable.waypoints], np.int32)], False,
+                          (0, 230, 255), 2)
+    cv2.circle(image, pixel(start), 5, (0, 255, 0), 2)
+    cv2.drawMarker(image, pixel(goal), (255, 0, 255), cv2.MARKER_CROSS, 12, 2)
+    return image
+
+
+@module.command("pose", PoseConfig, positionals=("pose",))
+def pose(call: Call, cfg: PoseConfig) -> dict[str, Any]:
+    """The rover's pose from the GNC: X,Y,HEADING (metres, metres, degrees CCW from east)."""
+    parts = cfg.pose.split(",")
+    try:
+        x, y, heading = (float(p) for p in parts)
+    except ValueError:
+        raise BadRequest(f"pose: {cfg.pose!r} is not X,Y,HEADING (three numbers)") from None
+    if not all(math.isfinite(v) for v in (x, y, heading)):
+        raise BadRequest(f"pose: {cfg.pose!r} must be finite numbers")
+    old = call.server.pose_estimate
+    call.server.pose_estimate = RoverPose(x, y, old.z, math.radians(heading), old.roll, old.pitch)
+    return {"x": f"{x:.3f}", "y": f"{y:.3f}", "heading": f"{heading:.2f}"}
