@@ -12,7 +12,6 @@ import asyncio
 import difflib
 import inspect
 import logging
-import time
 import traceback
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -22,7 +21,7 @@ from drivers.errors import DeviceFault, DeviceTimeout
 
 from .config import CommandConfig, Settings, bind_tokens, build_config, option_name, type_label
 from .jobs import Job, JobContext, JobInterrupted, RecoverySet
-from .protocol import (BadRequest, Busy, CommandLine, DeviceError, InternalError, Interrupted, RvsError,
+from .protocol import (Busy, CommandLine, DeviceError, InternalError, Interrupted, RvsError,
                        Sleeping, Timeout, Unauthorized, UnknownCommand, WrongMode)
 
 log = logging.getLogger("rvs.dispatch")

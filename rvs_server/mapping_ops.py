@@ -7,7 +7,7 @@ checkpointed. Acquisition checkpoints every view, so `break` loses at most the v
 from __future__ import annotations
 
 import math
-from typing import Any, Literal
+from typing import Any, Callable, Literal
 
 import numpy as np
 from pydantic import Field
@@ -94,14 +94,9 @@ class AcquireTofParams(StepParams):
     settle_frames: int = Field(10, ge=0, le=100)
 
 
-@operations.register("acquire.tof", AcquireTofParams, inputs=("views",))
-def acquire_tof(step: StepContext, params: AcquireTofParams, views: dict) -> dict[str, Any]:
-    """For each view: point the PTU, grab (averaged) SR4000 frames, keep the points and their pose."""
-    from drivers.sr4000 import grab
-    job = step.job
-    camera = job.devices.tof.require()
-    calibration = job.server.calibration()
-    pose = job.server.pose_estimate
+def each_view(step: StepContext, views: dict, take: Callable[[int, tuple[float, float]], dict]) -> list[dict]:
+    """Point the PTU at every planned view and `take` it; a view taken before a break or a crash is
+    loaded from its checkpoint instead of being taken again."""
     taken = []
     targets = views["pan_tilt_deg"]
     for index, (pan, tilt) in enumerate(targets):
@@ -109,21 +104,33 @@ def acquire_tof(step: StepContext, params: AcquireTofParams, views: dict) -> dic
         if saved is None:
             step.safe_point()
             step.progress(index / len(targets), f"view {index + 1}/{len(targets)} at pan {pan:.1f} tilt {tilt:.1f}")
-            measured = point_ptu(job, float(pan), float(tilt))
-            _repeatable(camera, index, step.load_partial(f"exposure{index - 1:03d}"))
-            result = grab(camera, frames=params.frames, min_confidence=params.min_confidence,
-                          settle_frames=params.settle_frames)
-            frame = result.frame
-            pose_cw = camera_to_world(pose, calibration.mounts["tof"], math.radians(measured[0]),
-                                      math.radians(measured[1]))
-            saved = {"points_camera": frame.xyz().astype(np.float32), "valid": result.defined,
-                     "intensity": frame.amplitude.astype(np.float32),
-                     "pan_tilt_deg": np.array(measured), "camera_to_world": pose_cw,
-                     "true_camera_to_world": _true_pose(job, camera)}
+            saved = take(index, point_ptu(step.job, float(pan), float(tilt)))
             step.save_partial(f"view{index:03d}", saved)
-            step.save_partial(f"exposure{index:03d}", {"integration_time": int(camera.integration_time())})
         taken.append(saved)
-    return {"sensor": "tof", "views": taken}
+    return taken
+
+
+@operations.register("acquire.tof", AcquireTofParams, inputs=("views",))
+def acquire_tof(step: StepContext, params: AcquireTofParams, views: dict) -> dict[str, Any]:
+    """For each view: point the PTU, grab (averaged) SR4000 frames, keep the points and their pose."""
+    from drivers.sr4000 import grab
+    job = step.job
+    camera = job.devices.tof.require()
+    mount = job.server.calibration().mounts["tof"]
+    pose = job.server.pose_estimate
+
+    def take(index: int, measured: tuple[float, float]) -> dict:
+        _repeatable(camera, index, step.load_partial(f"exposure{index - 1:03d}"))
+        result = grab(camera, frames=params.frames, min_confidence=params.min_confidence,
+                      settle_frames=params.settle_frames)
+        step.save_partial(f"exposure{index:03d}", {"integration_time": int(camera.integration_time())})
+        frame = result.frame
+        return {"points_camera": frame.xyz().astype(np.float32), "valid": result.defined,
+                "intensity": frame.amplitude.astype(np.float32), "pan_tilt_deg": np.array(measured),
+                "camera_to_world": camera_to_world(pose, mount, math.radians(measured[0]), math.radians(measured[1])),
+                "true_camera_to_world": _true_pose(camera)}
+
+    return {"sensor": "tof", "views": each_view(step, views, take)}
 
 
 def _repeatable(camera: Any, index: int, exposure: dict | None) -> None:
@@ -135,7 +142,7 @@ def _repeatable(camera: Any, index: int, exposure: dict | None) -> None:
         camera.set_integration_time(exposure["integration_time"])
 
 
-def _true_pose(job: Any, camera: Any) -> np.ndarray:
+def _true_pose(camera: Any) -> np.ndarray:
     pose = getattr(camera, "last_pose", None)
     return np.asarray(pose, dtype=np.float64) if pose is not None else np.full((4, 4), np.nan)
 
@@ -145,30 +152,21 @@ def acquire_stereo(step: StepContext, params: StepParams, views: dict) -> dict[s
     """For each view: point the PTU, grab both cameras on one trigger, keep the images and poses."""
     job = step.job
     pair = job.devices.cameras.require()
-    calibration = job.server.calibration()
+    mounts = job.server.calibration().mounts
     pose = job.server.pose_estimate
     timeout = job.devices.cameras.config.grab_timeout_s
-    taken = []
-    targets = views["pan_tilt_deg"]
-    for index, (pan, tilt) in enumerate(targets):
-        saved = step.load_partial(f"view{index:03d}")
-        if saved is None:
-            step.safe_point()
-            step.progress(index / len(targets), f"view {index + 1}/{len(targets)} at pan {pan:.1f} tilt {tilt:.1f}")
-            measured = point_ptu(job, float(pan), float(tilt))
-            for role in ("left", "right"):
-                camera = pair.camera(role)
-                if hasattr(camera, "set_frame_number"):
-                    camera.set_frame_number(100_000 * (index + 1))
-            frames = pair.grab("both", timeout_s=timeout)
-            pan_r, tilt_r = math.radians(measured[0]), math.radians(measured[1])
-            saved = {"left": _grey(frames["left"].image), "right": _grey(frames["right"].image),
-                     "pan_tilt_deg": np.array(measured),
-                     "left_to_world": camera_to_world(pose, calibration.mounts["left"], pan_r, tilt_r),
-                     "right_to_world": camera_to_world(pose, calibration.mounts["right"], pan_r, tilt_r)}
-            step.save_partial(f"view{index:03d}", saved)
-        taken.append(saved)
-    return {"sensor": "stereo", "views": taken}
+
+    def take(index: int, measured: tuple[float, float]) -> dict:
+        for role in ("left", "right"):
+            _repeatable(pair.camera(role), index, None)
+        frames = pair.grab("both", timeout_s=timeout)
+        pan, tilt = math.radians(measured[0]), math.radians(measured[1])
+        return {"left": _grey(frames["left"].image), "right": _grey(frames["right"].image),
+                "pan_tilt_deg": np.array(measured),
+                "left_to_world": camera_to_world(pose, mounts["left"], pan, tilt),
+                "right_to_world": camera_to_world(pose, mounts["right"], pan, tilt)}
+
+    return {"sensor": "stereo", "views": each_view(step, views, take)}
 
 
 def _grey(image: np.ndarray) -> np.ndarray:

@@ -8,8 +8,6 @@ SimulatedTestbed (world, rover, truth) is shared by all of them.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
-
 from drivers.sim.clock import SimClock
 from drivers.sim.config import WorldConfig
 from drivers.sim.testbed import SimulatedTestbed

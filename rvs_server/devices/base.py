@@ -2,7 +2,10 @@
 from __future__ import annotations
 
 import logging
+import threading
 from typing import Any, Literal
+
+from drivers.errors import DeviceFault
 
 from ..protocol import DeviceError
 
@@ -45,3 +48,54 @@ class Device:
     def check(self) -> None: ...
     def reset(self) -> None: ...
     def park(self) -> None: ...
+
+
+class SensorDevice(Device):
+    """A sensor that runs on a real backend or on the simulated test bed. The emulator needs the
+    simulated world, which takes seconds to build, so it is made on first use (in the job thread)
+    while the world builds in the background from start-up; a real backend is opened at once."""
+
+    def __init__(self, config: Any, clock: Any, testbed: Any = None):
+        super().__init__()
+        self.config = config
+        self.clock = clock
+        self.testbed = testbed
+        self.driver: Any = None
+        self._lock = threading.Lock()
+
+    def _make(self) -> None:
+        """Open the driver the config names and keep it in self.driver."""
+        raise NotImplementedError
+
+    def open(self) -> None:
+        if not self.config.enabled:
+            self.health = "off"
+            return
+        if self.config.backend == "sim":
+            self.testbed.prebuild()
+            self.health, self.last_error = "ok", ""
+            return
+        try:
+            self._make()
+        except (DeviceFault, OSError, ValueError) as exc:
+            self._fault(exc)
+
+    def require(self) -> Any:
+        self.require_healthy()
+        with self._lock:
+            if self.driver is None:
+                try:
+                    self._make()
+                except (DeviceFault, OSError, ValueError) as exc:
+                    self._fault(exc)
+                    raise
+        return self.driver
+
+    def close(self) -> None:
+        if self.driver is not None:
+            try:
+                self.driver.close()
+            except Exception as exc:  # closing must never stop a shutdown
+                log.warning("%s close: %s", self.name, exc)
+            self.driver = None
+        self.health = "off"

@@ -2,16 +2,14 @@
 parallel port through ppdev, or both emulated over the simulated test bed."""
 from __future__ import annotations
 
-import threading
-from typing import Any, Literal
+from typing import Literal
 
 from pydantic import Field
 
 from drivers.errors import DeviceFault
-from drivers.sim.clock import SimClock
 
 from ..config import Settings
-from .base import Device, log
+from .base import SensorDevice
 
 Resolution = Literal["low", "medium", "high", "highest"]
 
@@ -29,18 +27,10 @@ class CamerasDeviceConfig(Settings):
     seed: int = Field(11, description="sensor noise seed of the emulated cameras")
 
 
-class StereoDevice(Device):
+class StereoDevice(SensorDevice):
     """Both cameras and the trigger box; status shows each."""
 
     name = "cameras"
-
-    def __init__(self, config: CamerasDeviceConfig, clock: SimClock, testbed: Any = None):
-        super().__init__()
-        self.config = config
-        self.clock = clock
-        self.testbed = testbed
-        self.driver: Any = None
-        self._lock = threading.Lock()
 
     def health_items(self) -> dict[str, str]:
         if self.health != "ok" or self.driver is None:
@@ -50,30 +40,6 @@ class StereoDevice(Device):
         return {"dev.camera_left": state.get(status.left.state, "ok"),
                 "dev.camera_right": state.get(status.right.state, "ok"),
                 "dev.trigger": "fault" if status.trigger.last_error else ("ok" if status.trigger.is_open else "off")}
-
-    def open(self) -> None:
-        if not self.config.enabled:
-            self.health = "off"
-            return
-        if self.config.backend == "sim":
-            self.testbed.prebuild()  # the pair itself is made on first use, once the world exists
-            self.health, self.last_error = "ok", ""
-            return
-        try:
-            self._make()
-        except (DeviceFault, OSError, ValueError) as exc:
-            self._fault(exc)
-
-    def require(self) -> Any:
-        self.require_healthy()
-        with self._lock:
-            if self.driver is None:
-                try:
-                    self._make()
-                except (DeviceFault, OSError, ValueError) as exc:
-                    self._fault(exc)
-                    raise
-        return self.driver
 
     def _make(self) -> None:
         from drivers.avt import CameraSettings, emulated_stereo_pair, vimba_stereo_pair
@@ -121,12 +87,3 @@ class StereoDevice(Device):
         else:
             self.close()
             self.open()
-
-    def close(self) -> None:
-        if self.driver is not None:
-            try:
-                self.driver.close()
-            except Exception as exc:  # closing must never stop a shutdown
-                log.warning("cameras close: %s", exc)
-            self.driver = None
-        self.health = "off"

@@ -2,16 +2,14 @@
 simulated test bed."""
 from __future__ import annotations
 
-import threading
 from typing import Any, Literal
 
 from pydantic import Field
 
 from drivers.errors import DeviceFault
-from drivers.sim.clock import SimClock
 
 from ..config import Settings
-from .base import Device, log
+from .base import SensorDevice
 
 
 class TofDeviceConfig(Settings):
@@ -24,40 +22,8 @@ class TofDeviceConfig(Settings):
     seed: int = Field(5, description="noise seed of the emulated camera")
 
 
-class TofDevice(Device):
+class TofDevice(SensorDevice):
     name = "tof"
-
-    def __init__(self, config: TofDeviceConfig, clock: SimClock, testbed: Any = None):
-        super().__init__()
-        self.config = config
-        self.clock = clock
-        self.testbed = testbed
-        self.driver: Any = None
-        self._lock = threading.Lock()
-
-    def open(self) -> None:
-        if not self.config.enabled:
-            self.health = "off"
-            return
-        if self.config.backend == "sim":
-            self.testbed.prebuild()  # the emulator is made on first use, once the world exists
-            self.health, self.last_error = "ok", ""
-            return
-        try:
-            self._make()
-        except (DeviceFault, OSError, ValueError) as exc:
-            self._fault(exc)
-
-    def require(self) -> Any:
-        self.require_healthy()
-        with self._lock:
-            if self.driver is None:
-                try:
-                    self._make()
-                except (DeviceFault, OSError, ValueError) as exc:
-                    self._fault(exc)
-                    raise
-        return self.driver
 
     def _settings(self) -> Any:
         from drivers.sr4000 import Sr4000Settings
@@ -98,12 +64,3 @@ class TofDevice(Device):
     def reset(self) -> None:
         self.close()
         self.open()
-
-    def close(self) -> None:
-        if self.driver is not None:
-            try:
-                self.driver.close()
-            except Exception as exc:  # closing must never stop a shutdown
-                log.warning("tof close: %s", exc)
-            self.driver = None
-        self.health = "off"

@@ -8,7 +8,6 @@ truth/ holds the true heights and obstacles over the same cells.
 """
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 from typing import Any

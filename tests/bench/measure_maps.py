@@ -61,6 +61,13 @@ def score(product: Path, sensor: str) -> dict[str, float]:
             "false_hazard": float(hazard[safe].sum() / max(safe.sum(), 1))}
 
 
+def run(client, line: str) -> dict[str, str]:
+    reply = client.command(line, timeout=1800)
+    if reply.split()[1] != "OK":
+        raise RuntimeError(f"{line}: {reply}")
+    return pairs(reply)
+
+
 def peak_rss_mib(pid: int) -> float:
     for line in Path(f"/proc/{pid}/status").read_text().splitlines():
         if line.startswith("VmHWM:"):
@@ -85,8 +92,7 @@ def main() -> None:
                                    extra_args=["--world-seed", str(seed)]).start()
             try:
                 with server.connect(timeout=900) as c:
-                    tof = pairs(c.command("dem-full-tof --output tof", timeout=1800))
-                    stereo = pairs(c.command("dem-full --output stereo", timeout=1800))
+                    tof, stereo = (run(c, line) for line in ("dem-full-tof --output tof", "dem-full --output stereo"))
                 peak = peak_rss_mib(server.proc.pid)
             finally:
                 server.stop()
