@@ -92,7 +92,7 @@ def main() -> None:
         echo = subprocess.Popen([sys.executable, "-c", ECHO_SERVER], stdout=subprocess.PIPE)
         try:
             echo_port = int(echo.stdout.readline())
-            time.sleep(0.5)
+            time.sleep(5.0)  # the simulated world builds in the background at start-up: let it finish
             idle = peak_rss_mib(rvs.proc.pid)
             echo_rtt, echo_rate = measure(echo_port, args)
             rvs_rtt, rvs_rate = measure(rvs.port, args)
