@@ -44,9 +44,7 @@ def test_dem_full_tof_writes_maps_that_agree_with_the_truth(server):
 
 
 def test_break_and_continue_give_the_same_product_as_an_uninterrupted_run(server_factory, tmp_path):
-    plain = server_factory(data_dir=tmp_path / "plain")
-    with plain.connect() as c:
-        c.command(f"dem-full-tof {ARC} same", timeout=300)
+    reference = uninterrupted(server_factory, tmp_path)
     interrupted = server_factory(data_dir=tmp_path / "broken")
     with interrupted.connect() as c:
         c.send(f"@d dem-full-tof {ARC} same")
@@ -55,13 +53,11 @@ def test_break_and_continue_give_the_same_product_as_an_uninterrupted_run(server
         reply, _ = c.reply("d", timeout=120)
         assert "ERR 499 interrupted" in reply and brk["recovery"] == brk["job"]
         assert pairs(c.command("continue", timeout=300))["product"] == "same"
-    _assert_same_maps(products(plain) / "same", products(interrupted) / "same")
+    _assert_same_maps(reference, products(interrupted) / "same")
 
 
 def test_kill_restart_continue_gives_the_same_product(server_factory, tmp_path):
-    plain = server_factory(data_dir=tmp_path / "plain")
-    with plain.connect() as c:
-        c.command(f"dem-full-tof {ARC} same", timeout=300)
+    reference = uninterrupted(server_factory, tmp_path)
     first = server_factory(data_dir=tmp_path / "crash")
     with first.connect() as c:
         c.send(f"@d dem-full-tof {ARC} same")
@@ -71,7 +67,15 @@ def test_kill_restart_continue_gives_the_same_product(server_factory, tmp_path):
     with second.connect() as c:
         assert pairs(c.command("status"))["recovery"] == "1"
         assert pairs(c.command("continue", timeout=300))["product"] == "same"
-    _assert_same_maps(products(plain) / "same", products(second) / "same")
+    _assert_same_maps(reference, products(second) / "same")
+
+
+def uninterrupted(server_factory, tmp_path):
+    """The product of a run nobody interrupts: what a resumed run must equal."""
+    plain = server_factory(data_dir=tmp_path / "plain")
+    with plain.connect() as c:
+        c.command(f"dem-full-tof {ARC} same", timeout=300)
+    return products(plain) / "same"
 
 
 def _wait_for(client, tag: str, text: str, timeout: float = 120) -> None:
