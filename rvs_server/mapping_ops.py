@@ -7,6 +7,7 @@ checkpointed. Acquisition checkpoints every view, so `break` loses at most the v
 from __future__ import annotations
 
 import math
+from pathlib import Path
 from typing import Any, Callable, Literal
 
 import numpy as np
@@ -16,6 +17,7 @@ from .config import Range
 from .toolbox import dem as dem_tools
 from .toolbox import hazard as hazard_tools
 from .toolbox.geometry import Intrinsics, RoverPose, camera_to_world, footprint_polygon, relative_pose
+from .toolbox.localisation import AlignConfig, align_to_map, apply
 from .toolbox.ortho import merge_views, ortho_image
 from .toolbox.stereo import SgbmConfig, StereoCalibration, rectification, stereo_points
 from .toolbox.views import plan_views
@@ -236,6 +238,34 @@ def remove_body(step: StepContext, params: RemoveBodyParams, points: dict) -> di
     return {"points": kept, "removed": int(len(points["points"]) - len(kept)), "footprint": footprint}
 
 
+class AlignParams(StepParams):
+    reference: str = Field("", description="the map's cloud (.npy, world frame) to align to; empty: none yet")
+    max_translation_m: float = Field(1.0, gt=0, description="largest position correction believed")
+    max_rotation_deg: float = Field(10.0, gt=0, le=90, description="largest heading correction believed")
+    min_fitness: float = Field(0.3, ge=0, le=1, description="share of new points that must meet the map")
+
+
+@operations.register("localise.align", AlignParams, inputs=("points",))
+def localise(step: StepContext, params: AlignParams, points: dict) -> dict[str, Any]:
+    """Align the new points to the map's cloud (4-DOF ICP about the rover) and correct them; the
+    correction is the odometry pose's error, which the caller applies to the rover's pose."""
+    pose = step.job.server.pose_estimate
+    if not params.reference:
+        alignment = None
+        reason = "no map to align to yet"
+    else:
+        reference = np.load(Path(params.reference))
+        config = AlignConfig(max_translation_m=params.max_translation_m, max_rotation_deg=params.max_rotation_deg,
+                             min_fitness=params.min_fitness)
+        alignment = align_to_map(points["points"], reference, np.array([pose.x, pose.y, pose.z]), config)
+        reason = alignment.reason
+    correction = alignment.correction if alignment is not None else np.eye(4)
+    summary = {key: float(getattr(alignment, key)) if alignment is not None else 0.0
+               for key in ("dx", "dy", "dz", "dyaw", "fitness", "rmse", "constraint")}
+    return {"points": apply(correction, points["points"]), "correction": correction,
+            "accepted": bool(alignment is not None and alignment.accepted), "reason": reason, **summary}
+
+
 class GridParams(StepParams):
     cell: float = Field(0.05, ge=0.005, le=1.0, description="cell size, metres")
     max_extent_m: float = Field(12.0, gt=0, description="the grid spans at most this far from the rover")
@@ -306,16 +336,18 @@ def hazards(step: StepContext, params: HazardParams, dem: dict) -> dict[str, Any
     return {"slope_deg": maps.slope_deg, "step": maps.step, "roughness": maps.roughness, "code": maps.code}
 
 
-@operations.register("ortho.views", inputs=("dem", "acquired"))
-def ortho(step: StepContext, params: StepParams, dem: dict, acquired: dict) -> dict[str, Any]:
-    """Each view's intensity image draped on the DEM through the calibration; the best view per cell."""
+@operations.register("ortho.views", inputs=("dem", "acquired"), optional_inputs=("aligned",))
+def ortho(step: StepContext, params: StepParams, dem: dict, acquired: dict, aligned: dict | None = None) -> dict[str, Any]:
+    """Each view's intensity image draped on the DEM through the calibration; the best view per cell.
+    With `aligned`, the views' poses get the localisation's correction first."""
     job = step.job
+    correction = aligned["correction"] if aligned is not None else np.eye(4)
     if acquired["sensor"] == "tof":
         intrinsics = job.server.calibration().tof_intrinsics
-        views = [(v["intensity"], v["camera_to_world"], _depth_of(v)) for v in acquired["views"]]
+        views = [(v["intensity"], correction @ v["camera_to_world"], _depth_of(v)) for v in acquired["views"]]
     else:
         intrinsics = stereo_intrinsics(job)[0]
-        views = [(v["intensity"], v["camera_to_world"], None) for v in acquired["views"]]
+        views = [(v["intensity"], correction @ v["camera_to_world"], None) for v in acquired["views"]]
     draped = []
     for index, (image, pose, depth) in enumerate(views):
         step.safe_point()

@@ -18,6 +18,7 @@ import numpy as np
 
 from .clock import SimClock
 from .config import WorldConfig
+from .motion import DriveError, Motion, execute
 from .rover import Rover, RoverConfig
 from .world import World
 
@@ -25,12 +26,16 @@ from .world import World
 class SimulatedTestbed:
     def __init__(self, clock: SimClock, world_config: WorldConfig | None = None,
                  world_file: Path | None = None, rover_config: RoverConfig | None = None,
-                 start_pose: tuple[float, float, float] = (0.0, 0.0, 0.0)):
+                 start_pose: tuple[float, float, float] = (0.0, 0.0, 0.0), drive_error: DriveError | None = None):
         self.clock = clock
         self.world_config = world_config or WorldConfig()
         self.world_file = world_file
         self.rover_config = rover_config or RoverConfig()
         self.start_pose = start_pose
+        self.drive_error = drive_error or DriveError()
+        self._motion_rng = np.random.default_rng([self.world_config.seed, 17])
+        self.odometer_m = 0.0
+        self.contacts = 0
         self._world: World | None = None
         self._rover: Rover | None = None
         self._lock = threading.Lock()
@@ -88,6 +93,20 @@ class SimulatedTestbed:
         pan, tilt = self.ptu_angles()
         return self.rover.sensor_to_world(sensor, pan, tilt)
 
+    def drive(self, turn_rad: float, distance_m: float, step_height: float = 0.10) -> Motion:
+        """Execute one motion command with the rover's drive error (drivers/sim/motion.py); the
+        rover stays where it really ended up, and contacts with true obstacles are counted."""
+        motion = execute(self.rover, turn_rad, distance_m, self.drive_error, self._motion_rng, step_height)
+        self.odometer_m += abs(motion.distance_m)
+        self.contacts += motion.contacts
+        return motion
+
+    def inclination(self, noise_deg: float = 0.1) -> tuple[float, float]:
+        """Roll and pitch (radians) as an inclinometer on the body reads them: truth plus noise."""
+        roll, pitch = self.rover.roll_pitch()
+        noise = np.radians(self._motion_rng.normal(0.0, noise_deg, 2))
+        return roll + float(noise[0]), pitch + float(noise[1])
+
     def truth(self) -> dict:
         """The state of the moment, for a product's truth/ folder."""
         rover = self.rover
@@ -96,7 +115,8 @@ class SimulatedTestbed:
         return {
             "time_s": self.clock.now(),
             "rover": {"x": rover.x, "y": rover.y, "heading_rad": rover.heading, "roll_rad": roll,
-                      "pitch_rad": pitch, "body_to_world": rover.body_to_world.tolist()},
+                      "pitch_rad": pitch, "body_to_world": rover.body_to_world.tolist(),
+                      "odometer_m": self.odometer_m, "contacts": self.contacts},
             "ptu": {"pan_deg": pan, "tilt_deg": tilt},
             "sensors": {name: rover.sensor_to_world(name, pan, tilt).tolist() for name in rover.sensors},
             "world": {"seed": self.world_config.seed, "file": str(self.world_file) if self.world_file else None,
