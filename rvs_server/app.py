@@ -56,7 +56,8 @@ class ServerConfig(Settings):
 
 
 def all_modules() -> list[Module]:
-    from .modules import imaging, mapping, navigation, ptu, system
+    from .modules import imaging, mapping, navigate, navigation, ptu, system
+    assert navigate.module is navigation.module  # navigate registers its command on navigation's module
     return [system.module, ptu.module, imaging.module, mapping.module, navigation.module]
 
 
@@ -154,6 +155,7 @@ class Server:
         self.devices = Devices(self.devices_config, self.clock, self.world_config, self.world_file)
         self.zmq: ZmqTransport | None = None
         self._pose_estimate: RoverPose | None = None
+        self.pose_reports = 0  # pose commands received: navigate waits for the next one (real rover)
         self.started = time.monotonic()
         self.log_handlers: list[logging.Handler] = []
         self.log_path = self._start_log()

@@ -84,6 +84,30 @@ class Product:
         return target
 
 
+class ProductPart:
+    """A sub-folder of a product that takes files like a product: everything goes under FOLDER/ and
+    into the one manifest (navigate keeps each cycle's maps this way)."""
+
+    def __init__(self, product: Product, folder: str):
+        self.product, self.folder = product, folder
+        self.name, self.path = product.name, product.path
+
+    def add(self, relative: str, description: str) -> Path:
+        return self.product.add(f"{self.folder}/{relative}", description)
+
+    def write_json(self, relative: str, data: Any, description: str) -> Path:
+        return self.product.write_json(f"{self.folder}/{relative}", data, description)
+
+    def file(self, relative: str) -> Path:
+        return self.product.file(f"{self.folder}/{relative}")
+
+    def timing(self, step: str, seconds: float) -> None:
+        self.product.timing(f"{self.folder}/{step}", seconds)
+
+    def note(self, key: str, value: Any) -> None:
+        self.product.note(f"{self.folder}/{key}", value)
+
+
 class Products:
     """Where products go, and how their names are chosen."""
 

@@ -84,10 +84,16 @@ def workflow_path(server: Any, command: str) -> Path:
     return base / f"{command}.yaml"
 
 
-def check_workflow(server: Any, command: str) -> Any:
+class NavigateArgs(WorkflowArgs):
+    """$args of navigate's mapping workflows: the view ranges, and the map to localise against."""
+
+    reference: str = ""
+
+
+def check_workflow(server: Any, command: str, args_model: type[CommandConfig] = WorkflowArgs) -> Any:
     """Load and check the command's workflow: a broken file is refused before anything moves."""
     try:
-        return load_workflow(workflow_path(server, command), operations, WorkflowArgs, MappingSettings)
+        return load_workflow(workflow_path(server, command), operations, args_model, MappingSettings)
     except WorkflowError as exc:
         raise BadRequest(f"{command}: workflow refused: {exc}") from None
 
@@ -152,7 +158,11 @@ def _legend_title(spec: GridSpec) -> str:
             f"origin ({spec.origin_x:.2f}, {spec.origin_y:.2f}), north up")
 
 
-def write_maps(ctx: JobContext, product: Any, results: dict[str, Any]) -> dict[str, Any]:
+def write_maps(ctx: JobContext, product: Any, results: dict[str, Any],
+               settings: MappingSettings | None = None) -> dict[str, Any]:
+    """Every layer as GeoTIFF and PNG, the overview, cloud, views and (simulated) truth grids.
+    `settings`: the mapping settings when the job is not a mapping command's (navigate)."""
+    settings = settings or ctx.settings
     dem = results["dem"]
     hazard = results["hazard"]
     spec: GridSpec = dem["spec"]
@@ -185,13 +195,12 @@ def write_maps(ctx: JobContext, product: Any, results: dict[str, Any]) -> dict[s
                       intensity.astype(np.float32), spec, "ortho-image")
     for name, rgb in pictures.items():
         write_png(product.add(name, f"{name[:-4]} picture with legend"), with_title(rgb, f"{product.name}: {title}"))
-    truth_picture = truth_obstacle_picture(ctx, spec)
+    truth_picture = truth_obstacle_picture(ctx, spec, settings.truth_step)
     panels = [pictures["dem.png"], pictures.get("ortho.png"), pictures["hazard.png"], truth_picture]
     write_png(product.add("overview.png", "DEM, ortho-image, hazard map and (simulated) true obstacles side by side"),
               with_title(side_by_side([p for p in panels if p is not None]), f"{product.name}: {title}"))
-    cloud = results["points"]["points"] if "points" in results else None
-    if "body" in results:
-        cloud = results["body"]["points"]
+    # The last cloud the chain made: localised if a step aligned it, the rover's body removed if one did.
+    cloud = next((results[key]["points"] for key in ("aligned", "body", "points") if key in results), None)
     if cloud is not None:
         write_ply(product.add("cloud.ply", "merged point cloud, world frame (x east, y north, z up), metres"), cloud)
     acquired = results.get("acquired")
@@ -201,18 +210,17 @@ def write_maps(ctx: JobContext, product: Any, results: dict[str, Any]) -> dict[s
              "camera_to_world": np.asarray(v.get("camera_to_world", v.get("left_to_world"))).tolist()}
             for i, v in enumerate(acquired["views"])], "each view's PTU angles and estimated camera pose")
     product.write_json("grid.json", spec.to_json(), "the grid's origin, cell size and frame")
-    write_truth_grids(ctx, product, spec, acquired)
+    write_truth_grids(ctx, product, spec, acquired, settings.truth_step)
     observed = float(np.mean(known))
     hazardous = float(np.mean((hazard["code"] != UNKNOWN) & ((hazard["code"] & HAZARD) != 0)))
     return {"cells": f"{spec.rows}x{spec.cols}", "cell": spec.cell, "known": f"{observed:.3f}",
             "hazardous": f"{hazardous:.3f}", "views": len(acquired["views"]) if acquired else 0}
 
 
-def truth_obstacle_picture(ctx: JobContext, spec: GridSpec) -> np.ndarray | None:
+def truth_obstacle_picture(ctx: JobContext, spec: GridSpec, step: float) -> np.ndarray | None:
     devices = ctx.devices
     if not (devices.simulated and devices.testbed.ready):
         return None
-    step = ctx.settings.truth_step
     obstacles = devices.testbed.world.obstacle_mask(step, spec.cell, spec.x_range, spec.y_range)
     rgb = categorical(obstacles[:spec.rows, :spec.cols].astype(np.uint8), {0: (70, 160, 70), 1: (220, 60, 50)})
     return with_key(_north_up(rgb), [("clear", (70, 160, 70)), (f"rock > {step} m", (220, 60, 50))],
@@ -231,26 +239,26 @@ def side_by_side(panels: list[np.ndarray], gap: int = 8) -> np.ndarray:
     return np.concatenate(out, axis=1)
 
 
-def write_truth_grids(ctx: JobContext, product: Any, spec: GridSpec, acquired: dict | None) -> None:
+def write_truth_grids(ctx: JobContext, product: Any, spec: GridSpec, acquired: dict | None,
+                      truth_step: float) -> None:
     devices = ctx.devices
     if not (devices.simulated and devices.testbed.ready):
         return
     world = devices.testbed.world
     x_range, y_range = spec.x_range, spec.y_range
-    settings: MappingSettings = ctx.settings
     truth_height = world.height_map(spec.cell, x_range, y_range).astype(np.float32)
     write_geotiff(product.add("truth/height.tif", "true height at each cell centre, metres"),
                   truth_height[:spec.rows, :spec.cols], spec, "truth height")
     cell = max(spec.cell, world.grid.cell)
     if abs(cell - spec.cell) < 1e-12:
-        obstacles = world.obstacle_mask(settings.truth_step, spec.cell, x_range, y_range)
-        write_geotiff(product.add("truth/obstacles.tif", f"1 where a rock stands more than {settings.truth_step} m "
+        obstacles = world.obstacle_mask(truth_step, spec.cell, x_range, y_range)
+        write_geotiff(product.add("truth/obstacles.tif", f"1 where a rock stands more than {truth_step} m "
                                   "above the rock-free ground (drivers/sim/world.py obstacle_mask)"),
                       obstacles[:spec.rows, :spec.cols].astype(np.float32), spec, "truth obstacles")
         write_png(product.add("truth/obstacles.png", "true obstacles, north up"),
                   with_title(with_key(_north_up(categorical(obstacles.astype(np.uint8), {0: (70, 160, 70),
                                                                                           1: (220, 60, 50)})),
-                                      [("clear", (70, 160, 70)), (f"rock > {settings.truth_step} m", (220, 60, 50))],
+                                      [("clear", (70, 160, 70)), (f"rock > {truth_step} m", (220, 60, 50))],
                                       "true obstacles"), f"{product.name}: truth"))
     if acquired is not None:
         product.write_json("truth/views.json", [np.asarray(v.get("true_camera_to_world", np.full((4, 4), np.nan))).tolist()

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import csv
 import math
+from pathlib import Path
 from typing import Any, Literal
 
 import cv2
@@ -17,7 +18,7 @@ import numpy as np
 from pydantic import Field
 from scipy.ndimage import binary_fill_holes
 
-from ..config import CommandConfig, Point, SafeName, Settings
+from ..config import CommandConfig, Point, Range, SafeName, Settings
 from ..dispatch import Call, Module
 from ..jobs import JobContext
 from ..protocol import BadRequest, WrongMode
@@ -43,6 +44,17 @@ class NavigationSettings(Settings):
     global_margin_m: float = Field(3.0, ge=0, description="the global map spans start and goal plus this")
     slope_limit_deg: float = Field(20.0, gt=0, lt=90, description="terrain cost 1 at this slope")
     roughness_limit: float = Field(0.04, gt=0, description="terrain cost 1 at this roughness")
+    # navigate
+    drive: Literal["auto", "simulated", "gnc"] = Field(
+        "auto", description="who drives navigate's waypoints: the simulated rover, or the GNC (waypoints as a "
+        "navigate event, then wait for pose); auto: simulated when the devices are")
+    first_pan: Range = Field((-180.0, 180.0), description="pan range of the first cycle's map (and after a stall)")
+    cycle_pan: Range = Field((-180.0, 180.0), description="pan range of later cycles' maps, relative to the rover")
+    max_drive_m: float = Field(4.0, gt=0, description="drive at most this far before mapping again")
+    min_progress_m: float = Field(0.15, gt=0, description="a safe part shorter than this is a stall")
+    drive_speed_m_s: float = Field(0.3, gt=0, description="simulated rover speed")
+    turn_rate_deg_s: float = Field(20.0, gt=0, description="simulated rover turn rate")
+    pose_timeout_s: float = Field(900.0, gt=0, description="how long navigate waits for the GNC's pose")
 
 
 module = Module("navigation", settings=NavigationSettings, summary="path planning and the rover's pose")
@@ -64,31 +76,43 @@ LAST_MAP = {"tof": "dem-(full|update)-tof", "stereo": "dem-(full|update)"}
 
 
 def local_map(server: Any, sensor: str) -> tuple[MapLayers, Any, dict[str, np.ndarray]]:
-    """The latest hazard map of the sensor as planning layers, its product, and its raw layers."""
+    """The latest hazard map of the sensor as planning layers, its product, and its ortho-image."""
     product = server.products.latest(LAST_MAP[sensor])
     if product is None:
         raise WrongMode(f"no {sensor} map yet: run {'dem-full-tof' if sensor == 'tof' else 'dem-full'} first")
-    code, spec = read_geotiff(product.path / "hazard.tif")
-    slope = read_geotiff(product.path / "slope.tif")[0]
-    roughness = read_geotiff(product.path / "roughness.tif")[0]
     settings: NavigationSettings = server.module_configs["navigation"].settings
+    layers = planning_layers(product.path, settings, server.pose_estimate)
+    ortho = product.path / "ortho.tif"
+    extra = {"ortho": read_geotiff(ortho)[0] if ortho.exists() else np.full(layers.spec.shape, np.nan)}
+    return layers, product, extra
+
+
+def planning_layers(folder: Path, settings: NavigationSettings, pose: RoverPose) -> MapLayers:
+    """A map folder's hazard, slope and roughness GeoTIFFs as planning layers. The rover stands
+    on its own footprint, which no sensor sees: that ground is known and safe."""
+    code, spec = read_geotiff(folder / "hazard.tif")
+    slope = read_geotiff(folder / "slope.tif")[0]
+    roughness = read_geotiff(folder / "roughness.tif")[0]
     unknown = code == UNKNOWN
     hazard = ~unknown & ((code.astype(np.int64) & HAZARD) != 0)
     cost = terrain_cost(slope, settings.slope_limit_deg, roughness, settings.roughness_limit)
     cost = np.where(unknown | hazard, np.nan, np.nan_to_num(cost, nan=0.0))
-    # The rover stands on its own footprint, which no sensor sees: that ground is known and safe.
-    under = _under_rover(spec, server.pose_estimate, settings.rover_radius_m)
+    under = under_rover(spec, pose, settings.rover_radius_m)
     unknown &= ~under
     cost = np.where(under & np.isnan(cost) & ~hazard, 0.0, cost)
-    layers = MapLayers(spec, np.where(unknown, np.nan, cost), hazard, unknown)
-    ortho = product.path / "ortho.tif"
-    extra = {"ortho": read_geotiff(ortho)[0] if ortho.exists() else np.full(spec.shape, np.nan)}
-    return layers, product, extra
+    return MapLayers(spec, np.where(unknown, np.nan, cost), hazard, unknown)
 
 
-def _under_rover(spec: GridSpec, pose: RoverPose, radius: float) -> np.ndarray:
+def under_rover(spec: GridSpec, pose: RoverPose, radius: float) -> np.ndarray:
     xs, ys = spec.centres()
     return np.hypot(xs[None, :] - pose.x, ys[:, None] - pose.y) <= radius
+
+
+def planning_params(settings: NavigationSettings, weight: float | None) -> PlanningParams:
+    return PlanningParams(weight=settings.weight if weight is None else weight,
+                          rover_radius_m=settings.rover_radius_m, hazard_margin_m=settings.hazard_margin_m,
+                          unknown_policy=settings.unknown_policy, unknown_cost=settings.unknown_cost,
+                          max_deviation_m=settings.max_deviation_m)
 
 
 @module.job("plan-path", PlanPathConfig, resumable=False)
@@ -102,10 +126,7 @@ def plan_path_command(ctx: JobContext, cfg: PlanPathConfig) -> dict[str, Any]:
     local, source, extra = local_map(server, cfg.sensor)
     fused = fuse_maps(blank_map_spanning(start, cfg.to, settings.global_cell_m, settings.global_margin_m, [local]),
                       [local])
-    params = PlanningParams(weight=settings.weight if cfg.weight is None else cfg.weight,
-                            rover_radius_m=settings.rover_radius_m, hazard_margin_m=settings.hazard_margin_m,
-                            unknown_policy=settings.unknown_policy, unknown_cost=settings.unknown_cost,
-                            max_deviation_m=settings.max_deviation_m)
+    params = planning_params(settings, cfg.weight)
     ctx.progress(30, "planning")
     plan = plan_path(fused, start, cfg.to, params)
     product = ctx.product(cfg, name=cfg.output)
@@ -183,9 +204,11 @@ def draw_path(rgb: np.ndarray, spec: GridSpec, plan: Any, drivable: Any, start, 
     return image
 
 
-@module.command("pose", PoseConfig, positionals=("pose",))
+@module.immediate("pose", PoseConfig, positionals=("pose",))
 def pose(call: Call, cfg: PoseConfig) -> dict[str, Any]:
-    """The rover's pose from the GNC: X,Y,HEADING (metres, metres, degrees CCW from east)."""
+    """The rover's pose from the GNC: X,Y,HEADING (metres, metres, degrees CCW from east).
+
+    Answered at once even while a job runs: navigate waits for it after handing out waypoints."""
     parts = cfg.pose.split(",")
     try:
         x, y, heading = (float(p) for p in parts)
@@ -195,4 +218,5 @@ def pose(call: Call, cfg: PoseConfig) -> dict[str, Any]:
         raise BadRequest(f"pose: {cfg.pose!r} must be finite numbers")
     old = call.server.pose_estimate
     call.server.pose_estimate = RoverPose(x, y, old.z, math.radians(heading), old.roll, old.pitch)
+    call.server.pose_reports += 1
     return {"x": f"{x:.3f}", "y": f"{y:.3f}", "heading": f"{heading:.2f}"}

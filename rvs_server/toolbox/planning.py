@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .grid import GridSpec
 from .planning_costs import (UNKNOWN_POLICIES, InflatedHazards, UnknownPolicy, apply_unknown_policy,
                              inflate_hazards, proximity_cost, terrain_cost)
 from .planning_fusion import MapLayers, blank_map, blank_map_spanning, fuse_maps, resample_onto
@@ -86,6 +87,9 @@ def plan_path(planning_map: MapLayers, start_xy: tuple[float, float], goal_xy: t
     hazards = inflate_hazards(planning_map.hazard, spec.cell, params.clearance_m)
     # Cost the ground: terrain, unknown cells by policy, the soft cost near hazards; grown hazards block.
     cost = planning_cost(planning_map, hazards, params)
+    # A rover already standing within the clearance of a hazard (drive error, a map that grew a
+    # rock) may leave it, as long as no step takes it closer to the hazard than it stands now.
+    cost = open_escape(cost, planning_map, hazards, params, start_xy)
     # Refuse, with the reason, a start or goal off the map or on a blocked cell.
     refusal = refuse_endpoints(planning_map, hazards, cost, start_xy, goal_xy, params)
     if refusal:
@@ -106,13 +110,45 @@ def plan_path(planning_map: MapLayers, start_xy: tuple[float, float], goal_xy: t
                       cost_grid=cost, hazards=hazards)
 
 
-def planning_cost(planning_map: MapLayers, hazards: InflatedHazards, params: PlanningParams) -> np.ndarray:
-    """The grid A* searches: terrain cost, unknown cells' cost, soft cost near hazards; +inf where blocked."""
+def nearest_open_cell(cost_grid: np.ndarray, spec: GridSpec, goal_xy: tuple[float, float],
+                      radius_m: float) -> tuple[float, float] | None:
+    """The centre of the open (finite-cost) cell nearest the goal within radius_m, or None: where to
+    aim when the goal itself is too close to a hazard but arriving within a tolerance will do."""
+    xs, ys = spec.centres()
+    distance = np.hypot(xs[None, :] - goal_xy[0], ys[:, None] - goal_xy[1])
+    candidates = np.isfinite(cost_grid) & (distance <= radius_m)
+    if not candidates.any():
+        return None
+    row, col = np.unravel_index(np.argmin(np.where(candidates, distance, np.inf)), distance.shape)
+    return float(xs[col]), float(ys[row])
+
+
+def open_escape(cost: np.ndarray, planning_map: MapLayers, hazards: InflatedHazards, params: PlanningParams,
+                start_xy: tuple[float, float]) -> np.ndarray:
+    """Unblock, within the clearance around a start that lies in the grown zone (not on a hazard),
+    the grown cells no closer to a hazard than the start: the way out, never the way in."""
+    spec = planning_map.spec
+    (start,), inside = world_to_cells(spec, np.array([start_xy], dtype=np.float64))
+    if not inside[0] or not hazards.mask[start[0], start[1]] or planning_map.hazard[start[0], start[1]]:
+        return cost
+    xs, ys = spec.centres()
+    near = np.hypot(xs[None, :] - start_xy[0], ys[:, None] - start_xy[1]) <= params.clearance_m + spec.cell
+    way_out = near & hazards.mask & ~planning_map.hazard & (hazards.distance_m >= hazards.distance_m[start[0], start[1]])
+    if params.unknown_policy == "forbid":
+        way_out &= ~planning_map.unknown
+    opened = planning_cost(planning_map, hazards, params, masked=False)
+    return np.where(way_out, opened, cost)
+
+
+def planning_cost(planning_map: MapLayers, hazards: InflatedHazards, params: PlanningParams,
+                  masked: bool = True) -> np.ndarray:
+    """The grid A* searches: terrain cost, unknown cells' cost, soft cost near hazards; +inf where
+    blocked (unless masked=False)."""
     ground = np.where(planning_map.hazard, 0.0, planning_map.cost)  # hazards are blocked below anyway
     cost = apply_unknown_policy(ground, planning_map.unknown, params.unknown_policy, params.unknown_cost)
     cost = cost + params.proximity_cost * proximity_cost(hazards.distance_m, hazards.clearance_m,
                                                          params.proximity_falloff_m)
-    return np.where(hazards.mask, np.inf, cost)
+    return np.where(hazards.mask, np.inf, cost) if masked else cost
 
 
 def refuse_endpoints(planning_map: MapLayers, hazards: InflatedHazards, cost: np.ndarray,

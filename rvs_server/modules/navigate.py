@@ -1,0 +1,392 @@
+"""navigate: map, localise, plan, drive, and again, until the rover stands at the goal.
+
+The thesis' navigation (sections 4.4, 5.4-5.5) mapped once, planned once and drove, with the rover
+placed where odometry said. Here each cycle
+
+  1. maps the surroundings with the sensor (workflows/navigate-<sensor>.yaml), aligning the new
+     points to the map of the earlier cycles first: the alignment corrects the odometry pose;
+  2. stops if the corrected position is within the tolerance of the goal;
+  3. plans on a blank global map spanning rover and goal fused with every cycle's local map;
+  4. hands out the part of the path inside the newest map and a margin from its border, at most
+     max_drive_m long: in the simulation the rover drives it (turn, then straight, with drive
+     error: drivers/sim/motion.py); with a real rover the waypoints go out as a `navigate` event
+     and the job waits for the GNC's `pose X,Y,HEADING`.
+
+The state of the traverse is checkpointed after the mapping of each cycle and after each waypoint,
+so `break` stops within a cycle (at a view, a step or a waypoint) and `continue` carries on there.
+The product holds every cycle's maps and plan (cycle-NN/), the driven path (estimated, dead
+reckoning and, simulated, true) and an overview of the whole traverse.
+"""
+from __future__ import annotations
+
+import csv
+import math
+from dataclasses import asdict, dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+from pydantic import Field
+from scipy.ndimage import binary_fill_holes
+
+from ..config import CommandConfig, Point, Range, SafeName
+from ..jobs import JobContext
+from ..mapping_ops import operations
+from ..products import ProductPart
+from ..protocol import BadRequest, DeviceError, Timeout
+from ..rasters import read_geotiff
+from ..toolbox.geometry import RoverPose
+from ..toolbox.localisation import merge_clouds
+from ..toolbox.planning import (MapLayers, blank_map_spanning, distance_to_border, drivable_prefix, fuse_maps,
+                                nearest_open_cell, plan_path)
+from ..toolbox.planning_paths import path_length
+from ..workflow import WorkflowError, resolve_params, run_workflow
+from .mapping import MappingSettings, NavigateArgs, check_workflow, write_maps
+from .navigate_pictures import write_traverse
+from .navigation import NavigationSettings, module, planning_layers, planning_params, under_rover, write_plan
+
+SENSOR_DEVICE = {"tof": "tof", "stereo": "cameras"}
+MAP_CLOUD_VOXEL_M = 0.05
+
+
+class NavigateConfig(CommandConfig):
+    to: Point = Field(..., description="goal X,Y in the world frame, metres")
+    sensor: Literal["tof", "stereo"] = Field("tof", description="which sensor maps the way")
+    tolerance: float = Field(0.3, gt=0, le=10, description="arrived when the estimated position is this close, metres")
+    max_steps: int = Field(12, ge=1, le=100, description="mapping cycles at most")
+    weight: float | None = Field(None, ge=0, le=1, description="distance weight w; default navigation.toml")
+    output: SafeName | None = Field(None, description="product name; default navigate-TIME")
+
+
+@dataclass
+class Traverse:
+    """What navigate knows between cycles; checkpointed as a dict."""
+
+    product: str
+    start: list[float]
+    cycle: int = 0                       # cycles begun
+    phase: str = "map"                   # map: the next thing is mapping; drive: waypoints remain
+    pose: list[float] = field(default_factory=list)       # estimate: x, y, z, heading, roll, pitch
+    odometry: list[float] = field(default_factory=list)   # dead reckoning alone: x, y, heading
+    estimated_path: list[list[float]] = field(default_factory=list)
+    odometry_path: list[list[float]] = field(default_factory=list)
+    true_path: list[list[float]] = field(default_factory=list)
+    to_drive: list[list[float]] = field(default_factory=list)
+    cycles: list[dict[str, Any]] = field(default_factory=list)
+    contacts: int = 0
+    stalls: int = 0
+    best_percent: float = 0.0
+
+    @property
+    def rover(self) -> RoverPose:
+        return RoverPose(*self.pose)
+
+
+def _validate(server: Any, cfg: NavigateConfig) -> None:
+    server.devices[SENSOR_DEVICE[cfg.sensor]].require_healthy()
+    check_workflow(server, f"navigate-{cfg.sensor}", NavigateArgs)
+    if not all(math.isfinite(v) for v in cfg.to):
+        raise BadRequest(f"navigate: --to {cfg.to} must be finite numbers")
+
+
+@module.job("navigate", NavigateConfig, devices=("ptu",), validate=_validate)
+def navigate(ctx: JobContext, cfg: NavigateConfig) -> dict[str, Any]:
+    """Map, localise, plan and drive in cycles until the rover is within tolerance of the goal."""
+    return Navigation(ctx, cfg).run()
+
+
+class CycleJob:
+    """The job as a cycle's workflow sees it: progress messages name the cycle, the percent stays
+    the traverse's."""
+
+    def __init__(self, ctx: JobContext, cycle: int, percent: float):
+        self._ctx, self._cycle, self._percent = ctx, cycle, percent
+
+    def progress(self, percent: float, message: str) -> None:
+        self._ctx.progress(self._percent, f"cycle {self._cycle}: mapping: {message}")
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._ctx, name)
+
+
+class Navigation:
+    def __init__(self, ctx: JobContext, cfg: NavigateConfig):
+        self.ctx, self.cfg = ctx, cfg
+        self.server = ctx.server
+        self.settings: NavigationSettings = ctx.settings
+        self.mapping: MappingSettings = self.server.module_configs["mapping"].settings
+        self.product = ctx.product(cfg, name=cfg.output)
+        self.goal = (float(cfg.to[0]), float(cfg.to[1]))
+        self.simulated = self._drives_simulated()
+        resume = ctx.resume or {}
+        if "traverse" in resume:
+            self.state = Traverse(**resume["traverse"])
+            self.server.pose_estimate = self.state.rover
+        else:
+            pose = self.server.pose_estimate
+            self.state = Traverse(product=self.product.name, start=[pose.x, pose.y],
+                                  pose=[pose.x, pose.y, pose.z, pose.heading, pose.roll, pose.pitch],
+                                  odometry=[pose.x, pose.y, pose.heading])
+            self._record_position()
+        self.start_distance = math.dist(self.state.start, self.goal)
+
+    def _drives_simulated(self) -> bool:
+        mode = self.settings.drive
+        if mode == "simulated" and not self.ctx.devices.simulated:
+            raise BadRequest("navigation.drive is simulated but the devices are real: set drive = \"gnc\"")
+        return mode == "simulated" or (mode == "auto" and self.ctx.devices.simulated)
+
+    # ---------------------------------------------------------------------------------- the loop
+    def run(self) -> dict[str, Any]:
+        state = self.state
+        while True:
+            if state.phase == "drive":
+                self.drive()
+                state.phase = "map"
+                self.checkpoint()
+            if state.cycle >= self.cfg.max_steps:
+                self.fail("max_steps", f"not at the goal after {state.cycle} cycles (--max-steps): "
+                          f"{self.distance_to_goal():.2f} m to go")
+            state.cycle += 1
+            self.map_cycle()
+            if self.distance_to_goal() <= self.cfg.tolerance:
+                return self.finish()
+            self.plan_cycle()
+            self.checkpoint()
+
+    def map_cycle(self) -> None:
+        state, cycle = self.state, self.state.cycle
+        full = cycle == 1 or state.stalls > 0
+        self.progress(f"cycle {cycle}: mapping ({'full panorama' if full else 'ahead'})")
+        command = f"navigate-{self.cfg.sensor}"
+        workflow = check_workflow(self.server, command, NavigateArgs)
+        tilt = self.mapping.tof_tilt if self.cfg.sensor == "tof" else self.mapping.stereo_tilt
+        reference = self._map_cloud_path(cycle - 1)
+        args = NavigateArgs(pan=self.settings.first_pan if full else self.settings.cycle_pan, tilt=tilt,
+                            cell=self.mapping.cell, overlap=self.mapping.overlap,
+                            reference=str(reference) if reference is not None else "")
+        try:
+            params = resolve_params(workflow, operations, args, self.mapping)
+        except WorkflowError as exc:
+            raise BadRequest(f"navigate: {exc}") from None
+        before = state.rover
+        self.server.pose_estimate = before
+        folder = self.server.recovery.folder(self.ctx.job.id) / f"cycle-{cycle:02d}"
+        results, provenance = run_workflow(workflow, operations, params, CycleJob(self.ctx, cycle, state.best_percent),
+                                           folder)
+        aligned = results["aligned"]
+        after = RoverPose.from_matrix(np.asarray(aligned["correction"]) @ before.to_world())
+        state.pose = [after.x, after.y, after.z, after.heading, after.roll, after.pitch]
+        self.server.pose_estimate = after
+        part = ProductPart(self.product, f"cycle-{cycle:02d}")
+        summary = write_maps(self.ctx, part, results, self.mapping)
+        self.ctx.save_truth(part)
+        previous = np.load(reference) if reference is not None else None
+        np.save(part.add("map-cloud.npy", "the map's cloud after this cycle (world frame, 5 cm voxels; the next "
+                         "cycle aligns to it)"), merge_clouds(previous, aligned["points"], MAP_CLOUD_VOXEL_M))
+        record = {"cycle": cycle, "pose_odometry": _pose_list(before), "pose_corrected": _pose_list(after),
+                  "alignment": {k: (float(aligned[k]) if k not in ("accepted", "reason") else aligned[k])
+                                for k in ("accepted", "reason", "dx", "dy", "dz", "dyaw", "fitness", "rmse",
+                                          "constraint")},
+                  "map": summary, "pan": list(args.pan), "steps": [p["step"] for p in provenance]}
+        if self.simulated:
+            record["pose_true"] = list(self.ctx.devices.testbed.rover.pose)
+        state.cycles.append(record)
+        if state.estimated_path:
+            state.estimated_path[-1] = [after.x, after.y, after.heading]
+
+    def plan_cycle(self) -> None:
+        state, cycle = self.state, self.state.cycle
+        self.progress(f"cycle {cycle}: planning, {self.distance_to_goal():.2f} m to go")
+        fused, newest = self.fused_map()
+        start = (state.pose[0], state.pose[1])
+        params = planning_params(self.settings, self.cfg.weight)
+        plan = plan_path(fused, start, self.goal, params)
+        aim = self.goal
+        if plan.reason == "goal_blocked":
+            # Too close to a rock for the rover's centre, but arriving within the tolerance will do.
+            near = nearest_open_cell(plan.cost_grid, fused.spec, self.goal, self.cfg.tolerance - fused.spec.cell)
+            if near is not None:
+                aim = near
+                plan = plan_path(fused, start, aim, params)
+        # What is handed out stays inside what the cycles have mapped, a margin from its outer edge
+        # (holes inside it, such as the blind ring around the mast, do not cut the path).
+        border = distance_to_border(binary_fill_holes(~fused.unknown), fused.spec.cell)
+        drivable = drivable_prefix(plan.waypoints, fused.spec, border, self.settings.border_margin_m) if plan.found else None
+        part = ProductPart(self.product, f"cycle-{cycle:02d}")
+        ortho_path = self.product.path / f"cycle-{cycle:02d}" / "ortho.tif"
+        ortho = read_geotiff(ortho_path)[0] if ortho_path.exists() else np.full(newest.spec.shape, np.nan)
+        write_plan(part, fused, plan, drivable, newest, ortho, start, aim)
+        record = state.cycles[-1]
+        record["plan"] = {"found": plan.found, "reason": plan.reason, "aim": list(aim),
+                          "length_m": plan.length_m if plan.found else None}
+        if not plan.found:
+            self.fail(plan.reason, plan.message, fused=fused)
+        route = clip_length(drivable.waypoints, self.settings.max_drive_m)
+        record["drive"] = route.tolist()
+        if path_length(route) < self.settings.min_progress_m:
+            state.stalls += 1
+            if state.stalls > 1:
+                self.fail("stuck", "the safe part of the path inside the map stays too short to drive "
+                          f"({path_length(route):.2f} m) even after a full panorama", fused=fused)
+            return
+        state.stalls = 0
+        state.to_drive = route[1:].tolist()
+        state.phase = "drive"
+
+    # ---------------------------------------------------------------------------------- the maps
+    def fused_map(self) -> tuple[MapLayers, MapLayers]:
+        """Every cycle's map over a blank global map spanning rover and goal; the rover's own
+        footprint is safe ground. Also the newest map, whose border limits what is handed out."""
+        rover = self.state.rover
+        maps = [planning_layers(self.product.path / f"cycle-{c['cycle']:02d}", self.settings, rover)
+                for c in self.state.cycles]
+        blank = blank_map_spanning((rover.x, rover.y), self.goal, self.settings.global_cell_m,
+                                   self.settings.global_margin_m, maps)
+        fused = fuse_maps(blank, maps)
+        under = under_rover(fused.spec, rover, self.settings.rover_radius_m)
+        cost = np.where(under, np.where(np.isfinite(fused.cost), fused.cost, 0.0), fused.cost)
+        fused = MapLayers(fused.spec, np.where(under & fused.hazard, 0.0, cost), fused.hazard & ~under,
+                          fused.unknown & ~under)
+        return fused, maps[-1]
+
+    def _map_cloud_path(self, cycle: int):
+        if cycle < 1:
+            return None
+        path = self.product.path / f"cycle-{cycle:02d}" / "map-cloud.npy"
+        return path if path.exists() else None
+
+    # ---------------------------------------------------------------------------------- driving
+    def drive(self) -> None:
+        if self.simulated:
+            self.drive_simulated()
+        else:
+            self.drive_with_gnc()
+
+    def drive_simulated(self) -> None:
+        from drivers.sim.motion import dead_reckon, turn_and_distance
+        state = self.state
+        testbed = self.ctx.devices.testbed
+        while state.to_drive:
+            self.ctx.safe_point()
+            target = state.to_drive[0]
+            rover = state.rover
+            turn, distance = turn_and_distance((rover.x, rover.y, rover.heading), target)
+            self.progress(f"cycle {state.cycle}: driving to ({target[0]:.2f}, {target[1]:.2f}), "
+                          f"{self.distance_to_goal():.2f} m to go")
+            self.ctx.sleep(abs(math.degrees(turn)) / self.settings.turn_rate_deg_s
+                           + distance / self.settings.drive_speed_m_s)
+            try:
+                motion = testbed.drive(turn, distance, self.mapping.truth_step)
+            except ValueError as exc:  # the simulated rover left its world
+                raise DeviceError(f"simulated rover: {exc}") from None
+            x, y, heading = dead_reckon((rover.x, rover.y, rover.heading), turn, distance)
+            ox, oy, oh = dead_reckon(tuple(state.odometry), turn, distance)
+            roll, pitch = testbed.inclination()
+            state.pose = [x, y, self._ground_height(x, y, rover.z), heading, roll, pitch]
+            state.odometry = [ox, oy, oh]
+            state.contacts += motion.contacts
+            state.true_path.extend(motion.poses[1:].tolist())
+            state.to_drive.pop(0)
+            self.server.pose_estimate = state.rover
+            self._record_position(true=False)
+            self.checkpoint()
+
+    def drive_with_gnc(self) -> None:
+        """Hand the waypoints to the GNC and wait for its pose; the wait ends at `break` too."""
+        state = self.state
+        reports = self.server.pose_reports
+        waypoints = " ".join(f"{x:.3f},{y:.3f}" for x, y in state.to_drive)
+        self.ctx.publish("navigate", {"job": self.ctx.job.id, "cycle": state.cycle, "waypoints": waypoints,
+                                      "goal": f"{self.goal[0]:.3f},{self.goal[1]:.3f}"})
+        self.progress(f"cycle {state.cycle}: waiting for the GNC to drive {len(state.to_drive)} waypoints and "
+                      f"send pose X,Y,HEADING")
+        waited = 0.0
+        while self.server.pose_reports == reports:
+            if waited >= self.settings.pose_timeout_s:
+                raise Timeout(f"navigate: no pose from the GNC within {self.settings.pose_timeout_s:.0f} s of "
+                              f"handing out cycle {state.cycle}'s waypoints")
+            self.ctx.sleep(0.5)
+            waited += 0.5
+        pose = self.server.pose_estimate
+        state.pose = [pose.x, pose.y, pose.z, pose.heading, pose.roll, pose.pitch]
+        state.odometry = [pose.x, pose.y, pose.heading]
+        state.to_drive = []
+        self._record_position(true=False)
+
+    def _ground_height(self, x: float, y: float, fallback: float) -> float:
+        """The newest DEM's median height within the rover's radius of (x, y): where the rover stands."""
+        if not self.state.cycles:
+            return fallback
+        heights, spec = read_geotiff(self.product.path / f"cycle-{self.state.cycles[-1]['cycle']:02d}" / "dem.tif")
+        near = under_rover(spec, RoverPose(x, y), self.settings.rover_radius_m) & np.isfinite(heights)
+        return float(np.median(heights[near])) if near.any() else fallback
+
+    # ---------------------------------------------------------------------------------- bookkeeping
+    def _record_position(self, true: bool = True) -> None:
+        state = self.state
+        state.estimated_path.append([state.pose[0], state.pose[1], state.pose[3]])
+        state.odometry_path.append(list(state.odometry))
+        if true and self.simulated and not state.true_path:
+            state.true_path.append(list(self.ctx.devices.testbed.rover.pose))
+
+    def distance_to_goal(self) -> float:
+        return math.dist(self.state.pose[:2], self.goal)
+
+    def progress(self, message: str) -> None:
+        done = 1.0 - self.distance_to_goal() / max(self.start_distance, 1e-9)
+        self.state.best_percent = max(self.state.best_percent, min(99.0, 100.0 * done))
+        self.ctx.progress(self.state.best_percent, message)
+
+    def checkpoint(self) -> None:
+        self.ctx.checkpoint({"product": self.product.name, "traverse": asdict(self.state)})
+
+    def finish(self) -> dict[str, Any]:
+        state = self.state
+        self.write_traverse("arrived", "")
+        result = self.ctx.finish_product(self.product)
+        pose = state.rover
+        return {**result, "cycles": state.cycle, "x": f"{pose.x:.3f}", "y": f"{pose.y:.3f}",
+                "heading": f"{math.degrees(pose.heading):.2f}", "remaining": f"{self.distance_to_goal():.3f}",
+                "driven": f"{path_length(np.array(state.estimated_path)[:, :2]):.2f}"}
+
+    def fail(self, reason: str, message: str, fused: MapLayers | None = None) -> None:
+        self.write_traverse(reason, message, fused)
+        raise BadRequest(f"navigate stopped: {reason}: {message}; product={self.product.name}",
+                         data={"product": self.product.name, "reason": reason, "cycles": self.state.cycle})
+
+    def write_traverse(self, outcome: str, message: str, fused: MapLayers | None = None) -> None:
+        state = self.state
+        if fused is None and state.cycles:
+            fused = self.fused_map()[0]
+        truth = None
+        if self.simulated:
+            testbed = self.ctx.devices.testbed
+            truth = {"path": state.true_path, "contacts": state.contacts, "pose": list(testbed.rover.pose),
+                     "step_height_m": self.mapping.truth_step}
+        write_traverse(self.ctx, self.product, state, self.goal, outcome, message, fused, truth)
+        with open(self.product.add("path.csv", "the driven path: estimated (map-corrected) and dead reckoning"),
+                  "w", newline="") as handle:
+            writer = csv.writer(handle)
+            writer.writerow(["index", "x", "y", "heading_deg", "odometry_x", "odometry_y", "odometry_heading_deg"])
+            for i, (est, odo) in enumerate(zip(state.estimated_path, state.odometry_path)):
+                writer.writerow([i, f"{est[0]:.4f}", f"{est[1]:.4f}", f"{math.degrees(est[2]):.3f}",
+                                 f"{odo[0]:.4f}", f"{odo[1]:.4f}", f"{math.degrees(odo[2]):.3f}"])
+
+
+def clip_length(points: np.ndarray, max_length: float) -> np.ndarray:
+    """The polyline cut at max_length from its start."""
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+    out = [points[0]] if len(points) else []
+    left = max_length
+    for a, b in zip(points[:-1], points[1:]):
+        step = float(np.linalg.norm(b - a))
+        if step >= left:
+            out.append(a + (b - a) * (left / step) if step > 0 else b)
+            break
+        out.append(b)
+        left -= step
+    return np.array(out).reshape(-1, 2)
+
+
+def _pose_list(pose: RoverPose) -> list[float]:
+    return [pose.x, pose.y, pose.z, pose.heading, pose.roll, pose.pitch]
