@@ -118,11 +118,14 @@ def test_simulated_stereo_dem():
     rover = Rover(world, heading=0.3)
     camera = PinholeCamera.from_fov(480, 360, 60.0)
     intrinsics = g.Intrinsics(camera.width, camera.height, camera.fx, camera.fy, camera.cx, camera.cy)
-    images = [render(world, rover.sensor_to_world(side, 0.0, -35.0), camera).intensity for side in ("left", "right")]
+    views = [render(world, rover.sensor_to_world(side, 0.0, -35.0), camera) for side in ("left", "right")]
+    images = [view.intensity for view in views]
     left_pose, right_pose = (rover.sensor_to_world(side, 0.0, -35.0, calibrated=True) for side in ("left", "right"))
     rect = S.rectification(S.StereoCalibration(intrinsics, intrinsics, g.relative_pose(left_pose, right_pose)))
     points, valid = S.stereo_points(*images, rect)
-    assert valid.mean() > 0.8
+    # The top of the view looks past the 8 m world's edge into black, and this noise-free render
+    # leaves shadows a flat grey: neither has anything to match.
+    assert valid.mean() > 0.75 * views[0].hit.mean()
     dem = D.dem_from_points(D.view_points(points, valid, left_pose), GridSpec.covering((-4, 4), (-4, 4), 0.03))
     truth = world.height_map(0.03, dem.spec.x_range, dem.spec.y_range)
     xs, ys = dem.spec.centres()

@@ -36,7 +36,7 @@ from ..protocol import BadRequest, DeviceError, Timeout
 from ..rasters import read_geotiff
 from ..toolbox.geometry import RoverPose
 from ..toolbox.localisation import merge_clouds
-from ..toolbox.planning import (MapLayers, blank_map_spanning, distance_to_border, drivable_prefix, fuse_maps,
+from ..toolbox.planning import (MapLayers, blank_map_spanning, distance_to_border, drivable_prefix, fuse_nearest,
                                 nearest_open_cell, plan_path)
 from ..toolbox.planning_paths import path_length
 from ..workflow import WorkflowError, resolve_params, run_workflow
@@ -208,6 +208,9 @@ class Navigation:
             if near is not None:
                 aim = near
                 plan = plan_path(fused, start, aim, params)
+            elif self.distance_to_goal() > self.settings.confirm_range_m:
+                # Seen from afar (a few noisy pixels): go and look from close by before refusing.
+                plan = plan_path(unseen_near(fused, self.goal, self.settings.confirm_range_m / 2), start, aim, params)
         # What is handed out stays inside what the cycles have mapped, a margin from its outer edge
         # (holes inside it, such as the blind ring around the mast, do not cut the path).
         border = distance_to_border(binary_fill_holes(~fused.unknown), fused.spec.cell)
@@ -235,14 +238,15 @@ class Navigation:
 
     # ---------------------------------------------------------------------------------- the maps
     def fused_map(self) -> tuple[MapLayers, MapLayers]:
-        """Every cycle's map over a blank global map spanning rover and goal; the rover's own
-        footprint is safe ground. Also the newest map, whose border limits what is handed out."""
+        """Every cycle's map over a blank global map spanning rover and goal, each cell as seen from
+        the nearest place the rover mapped from (a close look corrects a far one); the rover's own
+        footprint is safe ground. Also the newest map."""
         rover = self.state.rover
         maps = [planning_layers(self.product.path / f"cycle-{c['cycle']:02d}", self.settings, rover)
                 for c in self.state.cycles]
         blank = blank_map_spanning((rover.x, rover.y), self.goal, self.settings.global_cell_m,
                                    self.settings.global_margin_m, maps)
-        fused = fuse_maps(blank, maps)
+        fused = fuse_nearest(blank, maps, [c["pose_corrected"][:2] for c in self.state.cycles])
         under = under_rover(fused.spec, rover, self.settings.rover_radius_m)
         cost = np.where(under, np.where(np.isfinite(fused.cost), fused.cost, 0.0), fused.cost)
         fused = MapLayers(fused.spec, np.where(under & fused.hazard, 0.0, cost), fused.hazard & ~under,
@@ -371,6 +375,12 @@ class Navigation:
             for i, (est, odo) in enumerate(zip(state.estimated_path, state.odometry_path)):
                 writer.writerow([i, f"{est[0]:.4f}", f"{est[1]:.4f}", f"{math.degrees(est[2]):.3f}",
                                  f"{odo[0]:.4f}", f"{odo[1]:.4f}", f"{math.degrees(odo[2]):.3f}"])
+
+
+def unseen_near(layers: MapLayers, point: tuple[float, float], radius: float) -> MapLayers:
+    """The map with everything within radius of a point made unknown again."""
+    near = under_rover(layers.spec, RoverPose(*point), radius)
+    return MapLayers(layers.spec, np.where(near, np.nan, layers.cost), layers.hazard & ~near, layers.unknown | near)
 
 
 def clip_length(points: np.ndarray, max_length: float) -> np.ndarray:

@@ -40,7 +40,7 @@ class NavigationSettings(Settings):
     max_deviation_m: float = Field(0.1, gt=0, description="straight segments stay this close to the A* path")
     border_margin_m: float = Field(0.5, ge=0, description="waypoints handed out keep this far from the "
                                    "local map's border")
-    global_cell_m: float = Field(0.1, gt=0, description="cell of the blank global map")
+    global_cell_m: float = Field(0.05, gt=0, description="cell of the blank global map")
     global_margin_m: float = Field(3.0, ge=0, description="the global map spans start and goal plus this")
     slope_limit_deg: float = Field(20.0, gt=0, lt=90, description="terrain cost 1 at this slope")
     roughness_limit: float = Field(0.04, gt=0, description="terrain cost 1 at this roughness")
@@ -54,6 +54,8 @@ class NavigationSettings(Settings):
     min_progress_m: float = Field(0.15, gt=0, description="a safe part shorter than this is a stall")
     drive_speed_m_s: float = Field(0.3, gt=0, description="simulated rover speed")
     turn_rate_deg_s: float = Field(20.0, gt=0, description="simulated rover turn rate")
+    confirm_range_m: float = Field(3.0, gt=0, description="a goal seen blocked from farther than this is "
+                                   "approached and looked at again before navigate refuses it")
     pose_timeout_s: float = Field(900.0, gt=0, description="how long navigate waits for the GNC's pose")
 
 

@@ -125,3 +125,28 @@ def fuse_maps(global_map: MapLayers, local_maps: Sequence[MapLayers]) -> MapLaye
         cost = np.maximum(cost, np.where(part.unknown, -np.inf, part.cost))
         unknown &= part.unknown
     return MapLayers(spec, np.where(unknown, np.nan, cost), hazard, unknown)
+
+
+def fuse_nearest(global_map: MapLayers, local_maps: Sequence[MapLayers],
+                 observers_xy: Sequence[Sequence[float]]) -> MapLayers:
+    """The global map with each cell taken from the local map whose observer stood nearest to it.
+
+    For a rover that maps as it goes: a rock seen at the edge of one map (far, noisy, a few pixels)
+    is seen again from close by later, and the close look should decide. Unlike `fuse_maps`, a later,
+    nearer map can clear a hazard, and unknown in one map never hides what another knows. Cells no
+    local map knows keep the global map's layers."""
+    if len(local_maps) != len(observers_xy):
+        raise ValueError(f"{len(local_maps)} maps but {len(observers_xy)} observer positions")
+    spec = global_map.spec
+    xs, ys = spec.centres()
+    cost, hazard, unknown = global_map.cost.copy(), global_map.hazard.copy(), global_map.unknown.copy()
+    best = np.full(spec.shape, np.inf)
+    for local, (ox, oy) in zip(local_maps, observers_xy):
+        part = resample_onto(local, spec)
+        distance = np.hypot(xs[None, :] - ox, ys[:, None] - oy)
+        take = ~part.unknown & (distance < best)
+        best = np.where(take, distance, best)
+        cost = np.where(take, part.cost, cost)
+        hazard = np.where(take, part.hazard, hazard)
+        unknown = np.where(take, False, unknown)
+    return MapLayers(spec, np.where(hazard | unknown, np.nan, cost), hazard, unknown)

@@ -71,6 +71,7 @@ class SgbmConfig:
     min_disparity: int = 0
     num_disparities: int = 128
     block_size: int = 5
+    min_texture: float = 1.5          # grey levels of spread a block needs to be matched at all
     uniqueness_ratio: int = 10
     speckle_window_size: int = 100
     speckle_range: int = 2
@@ -92,9 +93,54 @@ class SgbmConfig:
 def stereo_points(left: np.ndarray, right: np.ndarray, rect: Rectification,
                   config: SgbmConfig = SgbmConfig()) -> tuple[np.ndarray, np.ndarray]:
     """(points (H, W, 3) in the left camera frame, valid mask) from a raw stereo pair."""
-    left_rect, right_rect = rectify(left, right, rect)
+    left_rect, right_rect = to_uint8(*rectify(left, right, rect))
     disparity = sgbm_disparity(left_rect, right_rect, config)
+    disparity = np.where(both_images_cover(disparity, rect, config.block_size) & textured(left_rect, config),
+                         disparity, np.nan)
+    # A match at the end of the search range is where SGBM puts what it cannot resolve (nearer
+    # than the range allows, or no texture): its depth is the range's limit, not the surface's.
+    with np.errstate(invalid="ignore"):
+        disparity = np.where(disparity < config.min_disparity + config.num_disparities - 2, disparity, np.nan)
     return disparity_to_points(disparity, rect)
+
+
+def textured(image: np.ndarray, config: "SgbmConfig") -> np.ndarray:
+    """False in and within a block of featureless areas (sky, the black beyond the terrain's edge,
+    deep shadow): no block there has anything to match, and a block straddling its edge matches
+    the edge at whatever disparity a half-pixel of misalignment favours."""
+    grey = np.asarray(image, np.float32)
+    window = (config.block_size, config.block_size)
+    mean = cv2.boxFilter(grey, -1, window)
+    spread = np.sqrt(np.maximum(cv2.boxFilter(grey * grey, -1, window) - mean * mean, 0.0))
+    dead = (spread < config.min_texture).astype(np.uint8)
+    size = 2 * config.block_size + 1
+    return ~cv2.dilate(dead, np.ones((size, size), np.uint8)).astype(bool)
+
+
+def image_coverage(maps: tuple[np.ndarray, np.ndarray], size: tuple[int, int], margin: int) -> np.ndarray:
+    """Where a rectified image holds real pixels (not the constant border remap fills in), at
+    least `margin` pixels from the fill."""
+    ones = np.ones((size[1], size[0]), np.uint8)
+    covered = cv2.remap(ones, *maps, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    if margin > 0:
+        covered = cv2.erode(covered, np.ones((2 * margin + 1, 2 * margin + 1), np.uint8), borderValue=0)
+    return covered.astype(bool)
+
+
+def both_images_cover(disparity: np.ndarray, rect: Rectification, block_size: int) -> np.ndarray:
+    """True where the left pixel and the right pixel it matched both lie on real image content.
+
+    With a calibration that is slightly off (it always is), the rectified pair's black fill differs
+    by a row or two at the edges; a block that straddles it in one image matches garbage, whose
+    wrong disparities put far ground (the view's top rows) a few metres too close and high."""
+    margin = block_size // 2 + 1
+    left = image_coverage(rect.left_maps, rect.size, margin)
+    right = image_coverage(rect.right_maps, rect.size, margin)
+    height, width = disparity.shape
+    column = np.rint(np.arange(width)[None, :] - np.nan_to_num(disparity, nan=0.0)).astype(np.int64)
+    inside = (column >= 0) & (column < width)
+    right_ok = right[np.arange(height)[:, None], np.clip(column, 0, width - 1)] & inside
+    return left & right_ok
 
 
 def rectification(calibration: StereoCalibration, alpha: float = 0.0) -> Rectification:
