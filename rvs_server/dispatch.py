@@ -322,7 +322,7 @@ class Dispatcher:
         self._announce_mode()
         log.info("job %s start: %s%s", job_id, line, " (continued)" if recovery else "")
         server.publish("progress", {"job": job_id, "command": spec.name, "percent": 0, "message": "started"})
-        work = loop.run_in_executor(self._executor, spec.handler, ctx, cfg)
+        work = loop.run_in_executor(self._executor, _run_handler, spec, ctx, cfg)
         self._job_future = asyncio.ensure_future(self._finish(job, ctx, rset, work))
         return self._job_future
 
@@ -392,6 +392,17 @@ class Dispatcher:
 
     def shutdown(self) -> None:
         self._executor.shutdown(wait=False, cancel_futures=True)
+
+
+def _run_handler(spec: CommandSpec, ctx: JobContext, cfg: Any) -> Any:
+    """The job's handler, in the worker thread; with emulated devices, after the simulated world
+    being built in the background is ready (see SimulatedTestbed.wait_for_build)."""
+    devices = ctx.devices
+    if spec.devices and devices.simulated:
+        if not devices.testbed.ready:
+            ctx.progress(0.0, "waiting for the simulated world to be built")
+        devices.testbed.wait_for_build()
+    return spec.handler(ctx, cfg)
 
 
 def _device_error(exc: Exception) -> RvsError:

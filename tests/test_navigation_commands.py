@@ -39,13 +39,15 @@ def test_plan_path_needs_a_map_then_plans_on_it(server):
         assert (product / name).exists()
 
 
-def test_a_goal_that_cannot_be_reached_is_an_error_with_its_product(server):
+def test_bad_goals_are_refused_before_anything_is_planned(server):
     with server.connect() as c:
         c.command("dem-full-tof --pan -60:60 --output arc", timeout=300)
         reply = c.command("plan-path --to 2,0 --weight 1.5")
         assert "ERR 400" in reply and "--weight" in reply
         reply = c.command("plan-path --to 500,500 --output nowhere", timeout=120)
-    assert "ERR 400 bad-request no path: goal_outside_map" in reply or "OK" in reply.split()[1]
+        assert "ERR 400 bad-request --to 500,500 is 707.1 m from the start; the planner reaches 100 m" in reply
+        assert "ERR 400" in c.command("navigate --to 0,150") and "reaches 100 m" in c.command("navigate --to 0,150")
+    assert not (server.data_dir / "products" / "nowhere").exists()
 
 
 def test_pose_sets_the_estimate(server):

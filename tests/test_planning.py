@@ -454,3 +454,25 @@ def test_navigation_step_fuse_plan_and_cut():
     assert not prefix.complete and 1 < len(prefix.waypoints) <= len(result.waypoints)
     end_cell, inside = world_to_cells(local_spec, prefix.waypoints[-1:] - 1e-9)
     assert inside.all() and border[end_cell[0, 0], end_cell[0, 1]] >= 0.25
+
+
+def test_fuse_nearest_takes_the_closest_look_but_keeps_close_hazards():
+    from rvs_server.toolbox.planning import fuse_nearest
+    spec = GridSpec(0.0, 0.0, 0.1, 10, 40)              # 4 m east-west, 1 m north-south
+    blank = MapLayers(spec, np.full(spec.shape, np.nan), np.zeros(spec.shape, bool), np.ones(spec.shape, bool))
+    far_says_rock = np.zeros(spec.shape, bool)
+    far_says_rock[:, 30] = True                          # x = 3.05: seen as a rock from x = 0 ...
+    near_says_clear = np.zeros(spec.shape, bool)         # ... and as clear from x = 3.5
+    maps = [MapLayers(spec, np.zeros(spec.shape), far_says_rock, np.zeros(spec.shape, bool)),
+            MapLayers(spec, np.zeros(spec.shape), near_says_clear, np.zeros(spec.shape, bool))]
+    fused = fuse_nearest(blank, maps, [(0.0, 0.5), (3.5, 0.5)])
+    assert not fused.hazard.any() and not fused.unknown.any()
+    # The conservative rule would keep the far, noisy reading.
+    assert fuse_maps(blank, maps).hazard[:, 30].all()
+    # A hazard seen from within the sticky range stays even when a nearer look misses it.
+    close_rock = np.zeros(spec.shape, bool)
+    close_rock[:, 20] = True                             # x = 2.05, seen from x = 1.0
+    maps[0] = MapLayers(spec, np.zeros(spec.shape), close_rock, np.zeros(spec.shape, bool))
+    fused = fuse_nearest(blank, maps, [(1.0, 0.5), (2.1, 0.5)], sticky_range_m=1.5)
+    assert fused.hazard[:, 20].all()
+    assert not fuse_nearest(blank, maps, [(1.0, 0.5), (2.1, 0.5)]).hazard.any()

@@ -13,6 +13,10 @@ from ..config import Settings
 from .base import Device, log
 
 
+SIM_REPLY_TIMEOUT_S = 10.0
+POLL_MISSES_FOR_FAULT = 3
+
+
 class PtuDeviceConfig(Settings):
     enabled: bool = True
     backend: Literal["sim", "serial"] = Field("sim", description="sim: the emulator on a pseudo-terminal")
@@ -57,8 +61,12 @@ class PtuDevice(Device):
                 self.url = self._line.path
             else:
                 self.url = self.config.port
-            self.driver = PtuD46(self.url, clock=self.clock, baudrate=self.config.baudrate,
-                                 reply_timeout_s=self.config.timeout_s)
+            timeout = self.config.timeout_s
+            if self.config.backend == "sim":
+                # The emulator shares the interpreter with the server: while a long C call holds it
+                # (Open3D building a world, aligning clouds) it answers late, through no fault of a unit.
+                timeout = max(timeout, SIM_REPLY_TIMEOUT_S)
+            self.driver = PtuD46(self.url, clock=self.clock, baudrate=self.config.baudrate, reply_timeout_s=timeout)
             self.driver.open()
             self._position = self.driver.position()
             self.health, self.last_error = "ok", ""
@@ -71,13 +79,16 @@ class PtuDevice(Device):
 
     def _poll(self) -> None:
         """Keep the position fresh so `status` answers at once, even while a job holds the unit."""
+        missed = 0
         while not self._stop.wait(self.config.poll_interval_s):
             try:
                 self._position = self.driver.position()
+                missed = 0
                 if self.health == "fault" and self.last_error.startswith("not answering"):
                     self.health, self.last_error = "ok", ""
             except DeviceFault as exc:
-                if self.health == "ok":
+                missed += 1  # one late answer on a busy host is not a dead unit; three in a row are
+                if self.health == "ok" and missed >= POLL_MISSES_FOR_FAULT:
                     self._fault(DeviceFault(f"not answering: {exc}", "ptu"))
             except Exception as exc:  # a closed port during shutdown
                 if self._stop.is_set():

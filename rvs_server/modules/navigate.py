@@ -42,7 +42,8 @@ from ..toolbox.planning_paths import path_length
 from ..workflow import WorkflowError, resolve_params, run_workflow
 from .mapping import MappingSettings, NavigateArgs, check_workflow, write_maps
 from .navigate_pictures import write_traverse
-from .navigation import NavigationSettings, module, planning_layers, planning_params, under_rover, write_plan
+from .navigation import (NavigationSettings, check_reach, handout_border, module, planning_layers, planning_params, under_rover,
+                         write_plan)
 
 SENSOR_DEVICE = {"tof": "tof", "stereo": "cameras"}
 MAP_CLOUD_VOXEL_M = 0.05
@@ -74,6 +75,7 @@ class Traverse:
     cycles: list[dict[str, Any]] = field(default_factory=list)
     contacts: int = 0
     stalls: int = 0
+    moved: list[float] = field(default_factory=lambda: [0.0, 0.0])  # metres, degrees since the last fix
     best_percent: float = 0.0
 
     @property
@@ -84,8 +86,7 @@ class Traverse:
 def _validate(server: Any, cfg: NavigateConfig) -> None:
     server.devices[SENSOR_DEVICE[cfg.sensor]].require_healthy()
     check_workflow(server, f"navigate-{cfg.sensor}", NavigateArgs)
-    if not all(math.isfinite(v) for v in cfg.to):
-        raise BadRequest(f"navigate: --to {cfg.to} must be finite numbers")
+    check_reach(server, None, cfg.to)
 
 
 @module.job("navigate", NavigateConfig, devices=("ptu",), validate=_validate)
@@ -161,9 +162,14 @@ class Navigation:
         workflow = check_workflow(self.server, command, NavigateArgs)
         tilt = self.mapping.tof_tilt if self.cfg.sensor == "tof" else self.mapping.stereo_tilt
         reference = self._map_cloud_path(cycle - 1)
+        metres, degrees = state.moved
+        # How far odometry can be off since the last map: the alignment believes no more than this.
         args = NavigateArgs(pan=self.settings.first_pan if full else self.settings.cycle_pan, tilt=tilt,
                             cell=self.mapping.cell, overlap=self.mapping.overlap,
-                            reference=str(reference) if reference is not None else "")
+                            reference=str(reference) if reference is not None else "",
+                            max_translation_m=0.3 + 0.15 * metres,
+                            max_rotation_deg=min(90.0, 3.0 + 0.1 * degrees + 1.5 * metres),
+                            step_limit=self.settings.step_limit_m)
         try:
             params = resolve_params(workflow, operations, args, self.mapping)
         except WorkflowError as exc:
@@ -181,8 +187,13 @@ class Navigation:
         summary = write_maps(self.ctx, part, results, self.mapping)
         self.ctx.save_truth(part)
         previous = np.load(reference) if reference is not None else None
+        # A view that could not be aligned stays out of the map it would blur; it still serves as
+        # this cycle's local map, which is consistent with where the rover believes it is.
+        added = aligned["points"] if previous is None or aligned["accepted"] else np.empty((0, 3), np.float32)
         np.save(part.add("map-cloud.npy", "the map's cloud after this cycle (world frame, 5 cm voxels; the next "
-                         "cycle aligns to it)"), merge_clouds(previous, aligned["points"], MAP_CLOUD_VOXEL_M))
+                         "cycle aligns to it)"), merge_clouds(previous, added, MAP_CLOUD_VOXEL_M))
+        if aligned["accepted"]:  # until one is, odometry's uncertainty keeps growing
+            state.moved = [0.0, 0.0]
         record = {"cycle": cycle, "pose_odometry": _pose_list(before), "pose_corrected": _pose_list(after),
                   "alignment": {k: (float(aligned[k]) if k not in ("accepted", "reason") else aligned[k])
                                 for k in ("accepted", "reason", "dx", "dy", "dz", "dyaw", "fitness", "rmse",
@@ -211,9 +222,8 @@ class Navigation:
             elif self.distance_to_goal() > self.settings.confirm_range_m:
                 # Seen from afar (a few noisy pixels): go and look from close by before refusing.
                 plan = plan_path(unseen_near(fused, self.goal, self.settings.confirm_range_m / 2), start, aim, params)
-        # What is handed out stays inside what the cycles have mapped, a margin from its outer edge
-        # (holes inside it, such as the blind ring around the mast, do not cut the path).
-        border = distance_to_border(binary_fill_holes(~fused.unknown), fused.spec.cell)
+        # What is handed out stays inside what the cycles have mapped, a margin from its border.
+        border = handout_border(fused, state.rover, self.settings)
         drivable = drivable_prefix(plan.waypoints, fused.spec, border, self.settings.border_margin_m) if plan.found else None
         part = ProductPart(self.product, f"cycle-{cycle:02d}")
         ortho_path = self.product.path / f"cycle-{cycle:02d}" / "ortho.tif"
@@ -246,7 +256,8 @@ class Navigation:
                 for c in self.state.cycles]
         blank = blank_map_spanning((rover.x, rover.y), self.goal, self.settings.global_cell_m,
                                    self.settings.global_margin_m, maps)
-        fused = fuse_nearest(blank, maps, [c["pose_corrected"][:2] for c in self.state.cycles])
+        fused = fuse_nearest(blank, maps, [c["pose_corrected"][:2] for c in self.state.cycles],
+                             self.settings.sticky_range_m)
         under = under_rover(fused.spec, rover, self.settings.rover_radius_m)
         cost = np.where(under, np.where(np.isfinite(fused.cost), fused.cost, 0.0), fused.cost)
         fused = MapLayers(fused.spec, np.where(under & fused.hazard, 0.0, cost), fused.hazard & ~under,
@@ -289,6 +300,7 @@ class Navigation:
             state.pose = [x, y, self._ground_height(x, y, rover.z), heading, roll, pitch]
             state.odometry = [ox, oy, oh]
             state.contacts += motion.contacts
+            state.moved = [state.moved[0] + abs(distance), state.moved[1] + abs(math.degrees(turn))]
             state.true_path.extend(motion.poses[1:].tolist())
             state.to_drive.pop(0)
             self.server.pose_estimate = state.rover

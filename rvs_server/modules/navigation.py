@@ -35,6 +35,9 @@ class NavigationSettings(Settings):
     weight: float = Field(0.5, ge=0, le=1, description="1: shortest path; 0: easiest ground")
     rover_radius_m: float = Field(0.3, gt=0, description="hazards grow by this plus the margin")
     hazard_margin_m: float = Field(0.1, ge=0)
+    proximity_falloff_m: float = Field(0.4, ge=0, description="paths keep this much farther from hazards where "
+                                       "room allows (a soft cost); 0: off")
+    proximity_cost: float = Field(1.0, ge=0, description="the soft cost at the grown hazards' edge")
     unknown_policy: Literal["forbid", "allow", "penalize"] = "penalize"
     unknown_cost: float = Field(0.5, ge=0)
     max_deviation_m: float = Field(0.1, gt=0, description="straight segments stay this close to the A* path")
@@ -42,6 +45,7 @@ class NavigationSettings(Settings):
                                    "local map's border")
     global_cell_m: float = Field(0.05, gt=0, description="cell of the blank global map")
     global_margin_m: float = Field(3.0, ge=0, description="the global map spans start and goal plus this")
+    max_reach_m: float = Field(100.0, gt=0, le=1000, description="goals farther from the start are refused")
     slope_limit_deg: float = Field(20.0, gt=0, lt=90, description="terrain cost 1 at this slope")
     roughness_limit: float = Field(0.04, gt=0, description="terrain cost 1 at this roughness")
     # navigate
@@ -50,10 +54,16 @@ class NavigationSettings(Settings):
         "navigate event, then wait for pose); auto: simulated when the devices are")
     first_pan: Range = Field((-180.0, 180.0), description="pan range of the first cycle's map (and after a stall)")
     cycle_pan: Range = Field((-180.0, 180.0), description="pan range of later cycles' maps, relative to the rover")
-    max_drive_m: float = Field(4.0, gt=0, description="drive at most this far before mapping again")
+    max_drive_m: float = Field(3.0, gt=0, description="drive at most this far before mapping again")
     min_progress_m: float = Field(0.15, gt=0, description="a safe part shorter than this is a stall")
     drive_speed_m_s: float = Field(0.3, gt=0, description="simulated rover speed")
     turn_rate_deg_s: float = Field(20.0, gt=0, description="simulated rover turn rate")
+    step_limit_m: float = Field(0.09, gt=0, description="navigate's maps call a step hazardous from this "
+                                "height: below the rover's limit by the sensors' height error")
+    blind_radius_m: float = Field(1.0, ge=0, description="ground this close to the rover counts as seen when "
+                                  "the part of the path to hand out is cut (the rover stands on it)")
+    sticky_range_m: float = Field(2.5, ge=0, description="a hazard any cycle saw from this close stays, "
+                                  "whatever a nearer look says")
     confirm_range_m: float = Field(3.0, gt=0, description="a goal seen blocked from farther than this is "
                                    "approached and looked at again before navigate refuses it")
     pose_timeout_s: float = Field(900.0, gt=0, description="how long navigate waits for the GNC's pose")
@@ -110,14 +120,41 @@ def under_rover(spec: GridSpec, pose: RoverPose, radius: float) -> np.ndarray:
     return np.hypot(xs[None, :] - pose.x, ys[:, None] - pose.y) <= radius
 
 
+def handout_border(layers: MapLayers, pose: RoverPose, settings: NavigationSettings) -> np.ndarray:
+    """Distance to the border of what is mapped, which limits the part of a path handed out. Holes
+    inside the map (shadows behind rocks) do not cut the path, nor does the ground the rover stands
+    on and beside it (blind_radius_m: the mast's own blind ring)."""
+    seen = ~layers.unknown | under_rover(layers.spec, pose, settings.blind_radius_m)
+    return distance_to_border(binary_fill_holes(seen), layers.spec.cell)
+
+
 def planning_params(settings: NavigationSettings, weight: float | None) -> PlanningParams:
     return PlanningParams(weight=settings.weight if weight is None else weight,
                           rover_radius_m=settings.rover_radius_m, hazard_margin_m=settings.hazard_margin_m,
                           unknown_policy=settings.unknown_policy, unknown_cost=settings.unknown_cost,
-                          max_deviation_m=settings.max_deviation_m)
+                          max_deviation_m=settings.max_deviation_m, proximity_falloff_m=settings.proximity_falloff_m,
+                          proximity_cost=settings.proximity_cost)
 
 
-@module.job("plan-path", PlanPathConfig, resumable=False)
+def check_reach(server: Any, start: tuple[float, float] | None, goal: tuple[float, float]) -> None:
+    """Refuse a goal farther than the planner's reach: its blank global map would be gigabytes."""
+    settings: NavigationSettings = server.module_configs["navigation"].settings
+    if not all(math.isfinite(v) for v in goal):
+        raise BadRequest(f"--to {goal[0]},{goal[1]}: must be finite numbers")
+    if start is None:
+        pose = server.pose_estimate
+        start = (pose.x, pose.y)
+    distance = math.dist(start, goal)
+    if distance > settings.max_reach_m:
+        raise BadRequest(f"--to {goal[0]:g},{goal[1]:g} is {distance:.1f} m from the start; the planner reaches "
+                         f"{settings.max_reach_m:g} m (navigation.toml max_reach_m)")
+
+
+def _validate_plan(server: Any, cfg: PlanPathConfig) -> None:
+    check_reach(server, cfg.from_, cfg.to)
+
+
+@module.job("plan-path", PlanPathConfig, resumable=False, validate=_validate_plan)
 def plan_path_command(ctx: JobContext, cfg: PlanPathConfig) -> dict[str, Any]:
     """Plan a safe path on the current maps; cost map, path and waypoints as pictures, JSON and CSV."""
     server = ctx.server
@@ -133,10 +170,9 @@ def plan_path_command(ctx: JobContext, cfg: PlanPathConfig) -> dict[str, Any]:
     plan = plan_path(fused, start, cfg.to, params)
     product = ctx.product(cfg, name=cfg.output)
     product.note("inputs", [{"map": source.name, "path": str(source.path)}])
-    # The border is the local map's outer edge: holes inside it (the blind ring around the mast,
-    # shadows behind rocks) are unknown to the planner but do not end the drivable part.
-    border = distance_to_border(binary_fill_holes(~local.unknown), local.spec.cell)
-    drivable = drivable_prefix(plan.waypoints, local.spec, border, settings.border_margin_m) if plan.found else None
+    # On the fused grid: the local map's own grid may not even reach the rover.
+    border = handout_border(fused, pose, settings)
+    drivable = drivable_prefix(plan.waypoints, fused.spec, border, settings.border_margin_m) if plan.found else None
     ctx.progress(70, "writing")
     write_plan(product, fused, plan, drivable, local, extra["ortho"], start, cfg.to)
     result = ctx.finish_product(product)

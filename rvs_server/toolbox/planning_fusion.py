@@ -128,19 +128,21 @@ def fuse_maps(global_map: MapLayers, local_maps: Sequence[MapLayers]) -> MapLaye
 
 
 def fuse_nearest(global_map: MapLayers, local_maps: Sequence[MapLayers],
-                 observers_xy: Sequence[Sequence[float]]) -> MapLayers:
+                 observers_xy: Sequence[Sequence[float]], sticky_range_m: float = 0.0) -> MapLayers:
     """The global map with each cell taken from the local map whose observer stood nearest to it.
 
     For a rover that maps as it goes: a rock seen at the edge of one map (far, noisy, a few pixels)
     is seen again from close by later, and the close look should decide. Unlike `fuse_maps`, a later,
-    nearer map can clear a hazard, and unknown in one map never hides what another knows. Cells no
-    local map knows keep the global map's layers."""
+    nearer map can clear a hazard, and unknown in one map never hides what another knows. A hazard
+    any map saw from within `sticky_range_m` stays, whoever saw the cell nearest: a close look is
+    trusted whichever came first. Cells no local map knows keep the global map's layers."""
     if len(local_maps) != len(observers_xy):
         raise ValueError(f"{len(local_maps)} maps but {len(observers_xy)} observer positions")
     spec = global_map.spec
     xs, ys = spec.centres()
     cost, hazard, unknown = global_map.cost.copy(), global_map.hazard.copy(), global_map.unknown.copy()
     best = np.full(spec.shape, np.inf)
+    close_hazard = np.zeros(spec.shape, bool)
     for local, (ox, oy) in zip(local_maps, observers_xy):
         part = resample_onto(local, spec)
         distance = np.hypot(xs[None, :] - ox, ys[:, None] - oy)
@@ -149,4 +151,7 @@ def fuse_nearest(global_map: MapLayers, local_maps: Sequence[MapLayers],
         cost = np.where(take, part.cost, cost)
         hazard = np.where(take, part.hazard, hazard)
         unknown = np.where(take, False, unknown)
+        close_hazard |= part.hazard & (distance <= sticky_range_m)
+    hazard |= close_hazard
+    unknown &= ~close_hazard
     return MapLayers(spec, np.where(hazard | unknown, np.nan, cost), hazard, unknown)

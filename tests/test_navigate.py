@@ -1,0 +1,149 @@
+"""navigate against a real server on the simulated test bed: it arrives without touching a rock,
+knows where it is better than dead reckoning, stops and resumes on break / continue, refuses a goal
+on a rock with its pictures, and hands its waypoints to a GNC that answers with pose."""
+from __future__ import annotations
+
+import json
+import re
+import time
+import tomllib
+
+import numpy as np
+import pytest
+from scipy.ndimage import distance_transform_edt
+
+from conftest import SMALL_WORLD, pairs
+from drivers.sim.config import WorldConfig
+from drivers.sim.world import World
+
+CELL = 0.05
+
+
+@pytest.fixture(scope="module")
+def world() -> World:
+    return World.build(WorldConfig(**tomllib.loads(SMALL_WORLD)))
+
+
+def obstacles(world: World, half: float = 5.5) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    mask = world.obstacle_mask(0.10, CELL, (-half, half), (-half, half))
+    centres = -half + (np.arange(mask.shape[0]) + 0.5) * CELL
+    return mask, centres, centres
+
+
+def open_goal(world: World, distance: tuple[float, float]) -> tuple[float, float]:
+    """A point at the given distance from the start with at least 1 m of clear ground around it."""
+    mask, xs, ys = obstacles(world)
+    clearance = distance_transform_edt(~mask) * CELL
+    x, y = np.meshgrid(xs, ys)
+    r = np.hypot(x, y)
+    ok = (clearance > 1.0) & (r > distance[0]) & (r < distance[1]) & (x > 0)
+    row, col = np.argwhere(ok)[len(np.argwhere(ok)) // 2]
+    return round(float(xs[col]), 2), round(float(ys[row]), 2)
+
+
+def rock_goal(world: World) -> tuple[float, float]:
+    """The centre of the tallest rock 2-2.8 m from the start."""
+    mask, xs, ys = obstacles(world)
+    x, y = np.meshgrid(xs, ys)
+    r = np.hypot(x, y)
+    height = np.where((r > 2.0) & (r < 2.8), world.protrusion_at(x, y), 0.0)
+    row, col = np.unravel_index(np.argmax(height), height.shape)
+    assert height[row, col] > 0.15, "the test world needs a rock near the start"
+    return round(float(xs[col]), 2), round(float(ys[row]), 2)
+
+
+def product_of(server, reply: str):
+    return server.data_dir / "products" / re.search(r"product=(\S+)", reply).group(1)
+
+
+def test_navigate_arrives_without_touching_a_rock(server, world):
+    goal = open_goal(world, (4.0, 4.6))
+    with server.connect() as c:
+        tag = "nav"
+        c.send(f"@{tag} navigate --to {goal[0]},{goal[1]} --tolerance 0.3")
+        reply, progress = c.reply(tag, timeout=600)
+    assert " OK " in reply, reply
+    fields = pairs(reply)
+    assert int(fields["cycles"]) >= 2 and float(fields["remaining"]) <= 0.3
+    # PROGRESS names the cycle and what it does.
+    assert any("cycle 1: mapping" in line for line in progress) and any("driving" in line for line in progress)
+    product = product_of(server, reply)
+    for name in ("overview.png", "traverse.json", "path.csv", "truth/traverse.json", "cycle-01/hazard.tif",
+                 "cycle-01/plan.png", "cycle-01/map-cloud.npy", "cycle-02/dem.tif"):
+        assert (product / name).exists(), name
+    traverse = json.loads((product / "traverse.json").read_text())
+    truth = json.loads((product / "truth" / "traverse.json").read_text())
+    assert traverse["outcome"] == "arrived" and truth["contacts"] == 0
+    true_end = np.array(truth["path"][-1][:2])
+    assert np.linalg.norm(true_end - goal) < 0.45
+    # The map-corrected estimate is where the rover really is, within a few centimetres.
+    assert np.linalg.norm(np.array(traverse["pose"][:2]) - true_end) < 0.12
+    # The maps of the later cycles were aligned to the earlier ones.
+    assert all(c["alignment"]["accepted"] for c in traverse["cycles"][1:])
+
+
+def test_break_stops_the_traverse_and_continue_finishes_it(server, world):
+    goal = open_goal(world, (4.0, 4.6))
+    with server.connect() as c:
+        c.send(f"@nav navigate --to {goal[0]},{goal[1]}")
+        deadline = time.monotonic() + 300
+        while time.monotonic() < deadline:  # wait until the rover drives
+            line = c.read_line(timeout=60)
+            if line.startswith("nav PROGRESS") and "driving" in line:
+                break
+        assert " ERR " not in line
+        with server.connect() as other:
+            assert " OK " in other.command("break")
+        stopped, _ = c.reply("nav", timeout=300)
+        assert "ERR 499" in stopped and "recovery=" in stopped
+        reply = c.command("continue", timeout=600)
+    assert " OK " in reply, reply
+    truth = json.loads((product_of(server, reply) / "truth" / "traverse.json").read_text())
+    path = np.array(truth["path"])[:, :2]
+    # One continuous drive: no jump where the job stopped, no leg driven twice.
+    assert np.max(np.linalg.norm(np.diff(path, axis=0), axis=1)) < 0.1
+    assert np.linalg.norm(path[-1] - goal) < 0.45 and truth["contacts"] == 0
+
+
+def test_a_goal_on_a_rock_is_refused_with_the_pictures(server, world):
+    goal = rock_goal(world)
+    with server.connect() as c:
+        reply = c.command(f"navigate --to {goal[0]},{goal[1]} --tolerance 0.2", timeout=600)
+    assert "ERR 400 bad-request navigate stopped: goal_blocked" in reply, reply
+    product = product_of(server, reply)
+    traverse = json.loads((product / "traverse.json").read_text())
+    assert traverse["outcome"] == "goal_blocked" and (product / "overview.png").exists()
+    assert (product / "cycle-01" / "plan.png").exists()
+
+
+def test_with_a_real_rover_the_waypoints_go_to_the_gnc(server_factory, world):
+    server = server_factory(configs={"navigation.toml": "drive = \"gnc\"\n"})
+    goal = open_goal(world, (4.0, 4.6))
+    with server.connect() as gnc, server.connect() as c:
+        assert " OK " in gnc.command("subscribe navigate")
+        c.send(f"@nav navigate --to {goal[0]},{goal[1]}")
+        deadline = time.monotonic() + 300
+        event = ""
+        while not event.startswith("* EVENT navigate") and time.monotonic() < deadline:
+            event = gnc.read_line(timeout=300)
+        assert "cycle=1" in event, event
+        waypoints = re.search(r'waypoints="?([^"]+)"?', event).group(1).split()
+        x, y = (float(v) for v in waypoints[-1].split(","))
+        # The GNC drove there (here: it says so) and reports; navigate maps again from that pose.
+        assert " OK " in gnc.command(f"pose {x},{y},0")
+        while time.monotonic() < deadline:
+            line = c.read_line(timeout=300)
+            if "cycle 2: mapping" in line:
+                break
+        assert "cycle 2: mapping" in line
+        assert " OK " in gnc.command("break")
+        assert "ERR 499" in c.reply("nav", timeout=300)[0]
+
+
+@pytest.mark.parametrize("options, field", [("--to 1", "to"), ("--to 1,2 --tolerance 0", "tolerance"),
+                                            ("--to 1,2 --sensor lidar", "sensor"),
+                                            ("--to 1,2 --max-steps 0", "max_steps")])
+def test_bad_options_name_the_field(server, options, field):
+    with server.connect() as c:
+        reply = c.command(f"navigate {options}")
+    assert reply.split()[1:3] == ["ERR", "400"] and (field in reply or field.replace("_", "-") in reply), reply
