@@ -156,7 +156,7 @@ def acquire_stereo(step: StepContext, params: StepParams, views: dict) -> dict[s
     pair = job.devices.cameras.require()
     mounts = job.server.calibration().mounts
     pose = job.server.pose_estimate
-    timeout = job.devices.cameras.config.grab_timeout_s
+    timeout = job.devices.cameras.grab_timeout_s
 
     def take(index: int, measured: tuple[float, float]) -> dict:
         for role in ("left", "right"):

@@ -27,10 +27,20 @@ class CamerasDeviceConfig(Settings):
     seed: int = Field(11, description="sensor noise seed of the emulated cameras")
 
 
+SIM_GRAB_TIMEOUT_S = 30.0
+
+
 class StereoDevice(SensorDevice):
     """Both cameras and the trigger box; status shows each."""
 
     name = "cameras"
+
+    @property
+    def grab_timeout_s(self) -> float:
+        """Wall seconds a grab may take. Emulated cameras render their frames in this process, so
+        on a loaded host they are late through no fault of a camera: they get at least 30 s."""
+        timeout = self.config.grab_timeout_s
+        return max(timeout, SIM_GRAB_TIMEOUT_S) if self.config.backend == "sim" else timeout
 
     def health_items(self) -> dict[str, str]:
         if self.health != "ok" or self.driver is None:

@@ -122,7 +122,7 @@ def grab_stereo(ctx: JobContext, cfg: GrabStereoConfig) -> dict[str, Any]:
     ctx.progress(10, f"triggering {cfg.camera}")
     ctx.safe_point()
     started = time.perf_counter()
-    frames = pair.grab(cfg.camera, timeout_s=ctx.devices.cameras.config.grab_timeout_s)
+    frames = pair.grab(cfg.camera, timeout_s=ctx.devices.cameras.grab_timeout_s)
     product.timing("acquisition", time.perf_counter() - started)
     ctx.progress(70, "writing")
     meta = {}

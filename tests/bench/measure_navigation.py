@@ -112,6 +112,8 @@ def run(seed: int, sensor: str, size: float, out: Path, sim_speed: float) -> dic
         server.stop()
     seconds = time.perf_counter() - started
     fields = pairs(reply)
+    if "product=" not in reply:
+        raise RuntimeError(f"no product: {reply[:300]}")
     name = fields.get("product") or reply.split("product=")[-1].split()[0]
     product = root / "data" / "products" / name
     traverse = json.loads((product / "traverse.json").read_text())
