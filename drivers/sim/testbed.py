@@ -59,6 +59,14 @@ class SimulatedTestbed:
         except BaseException as exc:  # reported to whoever needs the world next
             self._build_error = exc
 
+    def wait_for_build(self) -> None:
+        """Wait for a background build to finish. While it runs, Open3D's scene building holds the
+        interpreter for seconds at a time, long enough for serial-line timeouts to expire in other
+        threads: jobs that drive the emulated devices start after it."""
+        builder = self._builder
+        if builder is not None and builder.is_alive():
+            builder.join()
+
     def close(self) -> None:
         """Wait for a world still being built: Open3D's threads must not outlive the interpreter."""
         builder = self._builder
