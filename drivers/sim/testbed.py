@@ -104,7 +104,12 @@ class SimulatedTestbed:
     def drive(self, turn_rad: float, distance_m: float, step_height: float = 0.10) -> Motion:
         """Execute one motion command with the rover's drive error (drivers/sim/motion.py); the
         rover stays where it really ended up, and contacts with true obstacles are counted."""
-        motion = execute(self.rover, turn_rad, distance_m, self.drive_error, self._motion_rng, step_height)
+        start = self.rover.pose
+        try:
+            motion = execute(self.rover, turn_rad, distance_m, self.drive_error, self._motion_rng, step_height)
+        except ValueError:  # off the world's edge: the rover stays where it was
+            self.rover.place(*start)
+            raise
         self.odometer_m += abs(motion.distance_m)
         self.contacts += motion.contacts
         return motion

@@ -32,7 +32,7 @@ from ..config import CommandConfig, Point, Range, SafeName
 from ..jobs import JobContext
 from ..mapping_ops import operations
 from ..products import ProductPart
-from ..protocol import BadRequest, DeviceError, Timeout
+from ..protocol import BadRequest, Timeout
 from ..rasters import read_geotiff
 from ..toolbox.geometry import RoverPose
 from ..toolbox.localisation import merge_clouds
@@ -292,8 +292,8 @@ class Navigation:
                            + distance / self.settings.drive_speed_m_s)
             try:
                 motion = testbed.drive(turn, distance, self.mapping.truth_step)
-            except ValueError as exc:  # the simulated rover left its world
-                raise DeviceError(f"simulated rover: {exc}") from None
+            except ValueError as exc:  # the simulated world ends (a real rover's ground does not)
+                self.fail("world_edge", f"the simulated rover would leave the simulated world: {exc}")
             x, y, heading = dead_reckon((rover.x, rover.y, rover.heading), turn, distance)
             ox, oy, oh = dead_reckon(tuple(state.odometry), turn, distance)
             roll, pitch = testbed.inclination()
