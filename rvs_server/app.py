@@ -56,9 +56,9 @@ class ServerConfig(Settings):
 
 
 def all_modules() -> list[Module]:
-    from .modules import imaging, mapping, navigate, navigation, ptu, system
+    from .modules import hopping, imaging, mapping, navigate, navigation, ptu, system
     assert navigate.module is navigation.module  # navigate registers its command on navigation's module
-    return [system.module, ptu.module, imaging.module, mapping.module, navigation.module]
+    return [system.module, ptu.module, imaging.module, mapping.module, navigation.module, hopping.module]
 
 
 class ModuleConfig:

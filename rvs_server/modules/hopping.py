@@ -1,0 +1,308 @@
+"""The hopping rover (hopping paper): hop, hop-plan, hop-map.
+
+    hop --speed V --elevation DEG --heading DEG    the hopper turns, launches and records its flight
+                                                   (simulated: drivers/sim/hopper.py on the test bed's
+                                                   world); product hop-NNN (hopping_store.py)
+    hop-plan [--goal X,Y | --goal-heading DEG]     the last hop reconstructed, made metric, corrected by
+                                                   ICP, and the next landing target (hopping_plan.py)
+    hop-map                                        every hop-plan cloud so far on one top-down map, true
+                                                   colour and false colour by hop (paper Fig 18)
+
+The server keeps the hopping state: the simulated hopper (made on first use at the configured start,
+on the world every emulated device shares), the hops so far and the estimated position of the
+hopper's centre of mass. It starts at the start position (heights are the map's: the start's ground
+is z = 0). A hop moves the estimate by the commanded hop on flat ground (dead reckoning); hop-plan
+replaces that with the reconstructed touchdown, and the next hop-plan starts from it, so the
+estimates chain. The state lives as long as the server process: a restart begins a new sequence at
+the start (the hop products stay).
+"""
+from __future__ import annotations
+
+import math
+import weakref
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+from pydantic import Field, model_validator
+
+from drivers.sim.hopper import Hopper, HopperConfig
+from drivers.sim.hopper_flight import OffTerrain
+
+from ..config import CommandConfig, Point, Settings
+from ..dispatch import Module
+from ..jobs import JobContext
+from ..protocol import BadRequest, DeviceError, WrongMode
+from ..rasters import write_geotiff, write_png
+from ..toolbox.colour import with_title
+from ..toolbox.geometry import rotation_z
+from ..toolbox.hopping import MOON_GRAVITY, hop_range
+from .hopping_pictures import contact_sheet, global_maps
+from .hopping_plan import run_hop_plan
+from .hopping_store import cloud_of, next_hop_number, read_ply, write_hop, write_ply
+
+REAL_LINK_MISSING = ("hopper: backend \"real\" (hopping.toml) has no link to a hopper in this server: commanding "
+                     "the spring launch and downloading the frames, timestamps and IMU / sun-sensor readings is not "
+                     "implemented; set backend = \"sim\" to hop on the simulated world")
+
+
+class HoppingSettings(Settings):
+    """configs/hopping.toml."""
+
+    backend: Literal["sim", "real"] = Field("sim", description="sim: the simulated hopper on the test bed's world")
+    start: Point = Field((0.0, 0.0), description="where the hopper starts, X,Y world metres; the estimate starts "
+                         "there too")
+    start_heading_deg: float = Field(0.0, ge=-180, le=180, description="the hopper's heading at the start")
+    max_speed_mps: float = Field(3.0, gt=0, le=20, description="the spring's fastest launch; hop refuses more")
+    gravity_mps2: float = Field(MOON_GRAVITY, gt=0, description="the g the estimator assumes (the simulated "
+                                "hopper's is hopper.gravity_mps2)")
+    hopper: HopperConfig = Field(HopperConfig(), description="the simulated hopper: camera, launch errors, bounces, "
+                                 "sensor noise (drivers/sim/hopper_config.py)")
+    # Reconstruction and the estimate.
+    sfm_max_features: int = Field(4096, ge=256, le=32768, description="SIFT features per frame")
+    sfm_first_octave: int = Field(-1, ge=-1, le=2, description="-1 doubles the frames first (more features on "
+                                  "small frames), 0 is about 3x faster at 640x480")
+    sfm_threads: int = Field(-1, ge=-1, le=256, description="COLMAP's threads: -1 every core; 1 makes a "
+                             "reconstruction repeatable (threads finish in varying order)")
+    min_registered: float = Field(0.6, gt=0, le=1, description="share of the frames SfM must register")
+    min_fit_inliers: float = Field(0.6, gt=0, le=1, description="share of the registered frames the parabola fit "
+                                   "must keep")
+    icp_voxel_m: float = Field(0.05, gt=0, le=1)
+    icp_initial_distance_m: float = Field(0.6, gt=0, le=5, description="how far the launch estimate may be off "
+                                          "(the last hop's bounces): ICP's first correspondence distance")
+    icp_crop_m: float = Field(1.5, gt=0.2, le=20, description="ICP aligns the ground within this of the launch "
+                              "estimate (the clouds' far parts are too noisy to align)")
+    icp_max_yaw_deg: float = Field(10.0, gt=0, le=45, description="ICP turning the cloud more is a false "
+                                   "match (its turn is never applied: the sun sensor keeps the heading)")
+    # Landing target selection (toolbox/hopping_landing.py LandingParams).
+    cell_m: float = Field(0.025, gt=0.005, le=0.5, description="cell of the top-down maps")
+    obstacle_m: float = Field(0.08, gt=0, description="protrusion above the ground plane that is an obstacle")
+    min_hop_m: float = Field(0.5, gt=0, description="shortest hop the planner proposes")
+    max_hop_m: float = Field(2.0, gt=0, description="longest hop the planner proposes")
+    elevation_deg: float = Field(60.0, ge=10, le=80, description="launch elevation of the planned hops")
+    sigma_speed_mps: float = Field(0.05, ge=0, description="launch errors, 1 sigma, for the error ellipse")
+    sigma_elevation_deg: float = Field(3.0, ge=0)
+    sigma_heading_deg: float = Field(3.0, ge=0)
+    sigma_position_m: float = Field(0.05, ge=0)
+    rover_radius_m: float = Field(0.15, gt=0, le=2, description="the body's largest protrusion from its centre")
+    safety_weight: float = Field(0.5, ge=0, le=1, description="selection: clearance weight (the goal gets the rest)")
+    # hop-map and pictures.
+    map_cell_m: float = Field(0.02, gt=0.005, le=0.5, description="cell of hop-map's global map")
+
+    @model_validator(mode="after")
+    def _reachable(self) -> "HoppingSettings":
+        if not self.min_hop_m < self.max_hop_m:
+            raise ValueError(f"min_hop_m {self.min_hop_m:g} must be less than max_hop_m {self.max_hop_m:g}")
+        reach = float(hop_range(self.max_speed_mps, math.radians(self.elevation_deg), self.gravity_mps2))
+        if self.max_hop_m > 0.9 * reach:
+            raise ValueError(f"max_hop_m {self.max_hop_m:g} is beyond 90 % of the flat-ground reach at max_speed_mps "
+                             f"{self.max_speed_mps:g} and elevation_deg {self.elevation_deg:g} ({reach:.2f} m)")
+        return self
+
+
+module = Module("hopping", settings=HoppingSettings, summary="the hopping rover: hop, hop-plan, hop-map")
+
+
+class HopConfig(CommandConfig):
+    speed: float = Field(..., gt=0, description="launch speed, m/s (at most hopping.toml max_speed_mps)")
+    elevation: float = Field(..., ge=10, le=80, description="launch elevation above the horizontal, degrees")
+    heading: float = Field(..., ge=-180, le=180, description="hop direction, degrees counter-clockwise from east")
+
+
+class HopPlanConfig(CommandConfig):
+    goal: Point | None = Field(None, description="hop toward this X,Y (world, metres)")
+    goal_heading: float | None = Field(None, ge=-180, le=180, description="or in this direction, degrees "
+                                       "counter-clockwise from east; neither: on along the last hop's direction")
+
+
+class HopMapConfig(CommandConfig):
+    cell: float | None = Field(None, gt=0.005, le=0.5, description="map cell, metres; default hopping.toml "
+                               "map_cell_m")
+
+
+# ------------------------------------------------------------------------------------ state
+@dataclass
+class HopEntry:
+    """One hop of this server's sequence."""
+
+    number: int
+    product: str                       # hop-NNN
+    launch: list[float]                # estimated centre of mass at launch (the estimate when it hopped)
+    plan: str | None = None            # the latest hop-plan product of this hop
+    cloud: str | None = None           # its corrected dense cloud (PLY)
+    flight: list[list[float]] = field(default_factory=list)   # the estimated flight, launch to touchdown
+
+
+class HoppingState:
+    """The hopper and what the server believes about it; one per server."""
+
+    def __init__(self) -> None:
+        self.start_sequence(None)
+
+    def start_sequence(self, world: Any) -> None:
+        self.world = world
+        self.hopper: Hopper | None = None
+        self.estimate: list[float] | None = None     # centre of mass, world frame (map heights)
+        self.hops: list[HopEntry] = []
+
+    def hopper_on(self, world: Any, settings: HoppingSettings) -> Hopper:
+        """The simulated hopper: made at the start on first use; a new world starts a new sequence; a
+        changed hopper configuration (reinit) takes effect where the hopper stands."""
+        if self.hopper is None or self.world is not world:
+            self.start_sequence(world)
+            self.hopper = Hopper(world, settings.hopper, *settings.start, math.radians(settings.start_heading_deg))
+        elif self.hopper.config != settings.hopper:
+            old = self.hopper
+            self.hopper = Hopper(world, settings.hopper, old.x, old.y, old.heading)
+            self.hopper.hops = old.hops
+        return self.hopper
+
+    def position(self, settings: HoppingSettings) -> np.ndarray:
+        if self.estimate is None:   # at rest on the start's ground (z = 0): the centre one body radius up
+            self.estimate = [*map(float, settings.start), settings.rover_radius_m]
+        return np.array(self.estimate)
+
+    def record_hop(self, number: int, product: str, cfg: HopConfig, settings: HoppingSettings) -> None:
+        """A new hop: launched from the current estimate, which moves by the commanded hop (dead
+        reckoning on flat ground) until hop-plan measures it."""
+        launch = self.position(settings)
+        distance = float(hop_range(cfg.speed, math.radians(cfg.elevation), settings.gravity_mps2))
+        self.hops.append(HopEntry(number, product, launch.tolist()))
+        self.estimate = (launch + rotation_z(math.radians(cfg.heading)) @ [distance, 0.0, 0.0]).tolist()
+
+    def plan_inputs(self) -> dict:
+        """What hop-plan needs of the last hop; stored in its checkpoint."""
+        last = self.hops[-1]
+        previous = next((h for h in reversed(self.hops[:-1]) if h.cloud), None)
+        return {"hop": last.product, "number": last.number, "launch": last.launch,
+                "previous_cloud": previous.cloud if previous else None,
+                "previous_plan": previous.plan if previous else None}
+
+    def record_plan(self, hop: str, plan: str, cloud: str, flight: np.ndarray, touchdown: np.ndarray) -> None:
+        """hop-plan's result: the hop's cloud for the next ICP and hop-map; its touchdown the new estimate."""
+        entry = next((h for h in self.hops if h.product == hop), None)
+        if entry is None:   # a continued job of a sequence this server did not fly
+            return
+        entry.plan, entry.cloud, entry.flight = plan, cloud, flight.tolist()
+        if entry is self.hops[-1]:
+            self.estimate = touchdown.tolist()
+
+
+_states: "weakref.WeakKeyDictionary[Any, HoppingState]" = weakref.WeakKeyDictionary()
+
+
+def state_of(server: Any) -> HoppingState:
+    return _states.setdefault(server, HoppingState())
+
+
+def _settings(server: Any) -> HoppingSettings:
+    return server.module_settings_of("hopping")
+
+
+# ------------------------------------------------------------------------------------ hop
+def _validate_hop(server: Any, cfg: HopConfig) -> None:
+    settings = _settings(server)
+    if settings.backend == "real":
+        raise DeviceError(REAL_LINK_MISSING)
+    if cfg.speed > settings.max_speed_mps:
+        raise BadRequest(f"hop: --speed = {cfg.speed:g}: above the hopper's fastest launch; allowed: float > 0 and "
+                         f"<= {settings.max_speed_mps:g} (hopping.toml max_speed_mps)")
+
+
+@module.job("hop", HopConfig, resumable=False, validate=_validate_hop)
+def hop(ctx: JobContext, cfg: HopConfig) -> dict[str, Any]:
+    """Hop: turn to the heading, launch, record the flight's frames and the attitude sensors."""
+    settings: HoppingSettings = ctx.settings
+    state = state_of(ctx.server)
+    testbed = ctx.devices.testbed
+    if not testbed.ready:
+        ctx.progress(1, "waiting for the simulated world to be built")
+    testbed.wait_for_build()
+    hopper = state.hopper_on(testbed.world, settings)
+    ctx.safe_point()   # the last moment to stop: a launched hop cannot be taken back
+    ctx.progress(5, f"hop {hopper.hops + 1}: turning to {cfg.heading:g} deg, launching at {cfg.speed:g} m/s, "
+                    f"{cfg.elevation:g} deg; the camera records the flight")
+    try:
+        record = hopper.hop(cfg.speed, cfg.elevation, cfg.heading)
+    except OffTerrain as exc:
+        raise BadRequest(f"hop: the flight would leave the simulated world ({exc}); the hopper stays at "
+                         f"({hopper.x:.2f}, {hopper.y:.2f})") from None
+    number = next_hop_number(ctx.server.products.root)
+    product = ctx.product(cfg, name=f"hop-{number:03d}")
+    ctx.progress(80, f"writing {product.name}: {len(record.frames)} frames")
+    write_hop(product, record, number)
+    write_png(product.add("frames.png", "contact sheet: frames spread over the flight, with their times"),
+              with_title(contact_sheet(record.frames, record.timestamps, 8), f"{product.name}: the hop's frames"))
+    state.record_hop(number, product.name, cfg, settings)
+    result = ctx.finish_product(product)
+    return {**result, "frames": len(record.frames), "flight_time": f"{record.timestamps[-1]:.3f}"}
+
+
+# ------------------------------------------------------------------------------------ hop-plan
+def _validate_plan(server: Any, cfg: HopPlanConfig) -> None:
+    if cfg.goal is not None and cfg.goal_heading is not None:
+        raise BadRequest("hop-plan: --goal and --goal-heading given together; give one of them (or neither: on "
+                         "along the last hop's direction)")
+    if cfg.goal is not None and not all(math.isfinite(v) for v in cfg.goal):
+        raise BadRequest(f"hop-plan: --goal = {cfg.goal[0]},{cfg.goal[1]}: must be finite numbers")
+    if not state_of(server).hops:
+        raise WrongMode("hop-plan: no hop yet: hop --speed V --elevation DEG --heading DEG first")
+
+
+@module.job("hop-plan", HopPlanConfig, validate=_validate_plan)
+def hop_plan(ctx: JobContext, cfg: HopPlanConfig) -> dict[str, Any]:
+    """Reconstruct the last hop, correct the position by ICP, choose the next landing target."""
+    state = state_of(ctx.server)
+    inputs = (ctx.resume or {}).get("inputs")
+    if inputs is None:
+        if not state.hops:   # continued after a restart, from before its inputs were checkpointed
+            raise WrongMode("hop-plan: no hop in this server's sequence to plan from (the server restarted)")
+        inputs = state.plan_inputs()
+    outcome = run_hop_plan(ctx, cfg, inputs, ctx.settings)
+    taus = np.linspace(0.0, outcome.estimate.touchdown_tau, 40)
+    state.record_plan(inputs["hop"], outcome.reply["product"], str(outcome.cloud_path),
+                      outcome.estimate.trajectory(taus), outcome.estimate.touchdown)
+    if outcome.error is not None:
+        raise outcome.error
+    return outcome.reply
+
+
+# ------------------------------------------------------------------------------------ hop-map
+def _validate_map(server: Any, cfg: HopMapConfig) -> None:
+    if not any(h.cloud for h in state_of(server).hops):
+        raise WrongMode("hop-map: no hop reconstructed yet: hop, then hop-plan, first")
+
+
+@module.job("hop-map", HopMapConfig, resumable=False, validate=_validate_map)
+def hop_map(ctx: JobContext, cfg: HopMapConfig) -> dict[str, Any]:
+    """The global map of every reconstructed hop: true colour and false colour by hop, and the merged cloud."""
+    settings: HoppingSettings = ctx.settings
+    entries = [h for h in state_of(ctx.server).hops if h.cloud]
+    ctx.progress(10, f"merging the clouds of {len(entries)} hops")
+    clouds = []
+    for entry in entries:
+        points, colours = cloud_of(read_ply(entry.cloud))
+        clouds.append((entry.number, points, colours))
+    product = ctx.product(cfg, name=f"hop-map-{entries[-1].number:03d}")
+    product.note("inputs", [{"hop": h.product, "plan": h.plan} for h in entries])
+    ctx.progress(50, "top-down maps")
+    tracks = [(h.number, np.array(h.flight)) for h in entries]
+    true_picture, false_picture, spec, seen = global_maps(clouds, tracks, cfg.cell or settings.map_cell_m,
+                                                          product.name)
+    write_png(product.add("map.png", "global map, true colour (mean grey level), estimated flights drawn"),
+              true_picture)
+    write_png(product.add("map-hops.png", "global map, false colour by hop: which hop saw each cell"), false_picture)
+    write_geotiff(product.add("hops-per-cell.tif", "how many hops saw each cell (float32 GeoTIFF)"),
+                  seen.astype(np.float32), spec, "hops per cell")
+    points = np.vstack([p for _, p, _ in clouds])
+    colours = np.vstack([c if c is not None else np.full((len(p), 3), 128, np.uint8) for _, p, c in clouds])
+    hops = np.concatenate([np.full(len(p), n) for n, p, _ in clouds])
+    write_ply(product.add("map.ply", "all hops' clouds, world frame, grey levels as RGB, property hop: the hop "
+                          "number"), points, colours, hops)
+    product.write_json("map.json", {"grid": spec.to_json(), "hops": [
+        {"hop": h.product, "plan": h.plan, "points": int(len(p)), "launch_m": h.launch,
+         "touchdown_m": h.flight[-1] if h.flight else None} for h, (_, p, _) in zip(entries, clouds)]},
+        "the hops in the map, their clouds' sizes and estimated launch and touchdown")
+    result = ctx.finish_product(product)
+    return {**result, "hops": len(entries), "points": len(points), "cells": f"{spec.rows}x{spec.cols}",
+            "seen": f"{float(np.mean(seen > 0)):.3f}"}

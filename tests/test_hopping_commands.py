@@ -1,0 +1,155 @@
+"""hop, hop-plan and hop-map against a real server on the simulated test bed (12 m world, the hopper's
+camera at 320x240 without motion blur, so one hop and its reconstruction take about 20 s).
+
+The chain: hop, hop-plan (SfM, dense cloud, parabola, target), a second hop to the target it chose,
+hop-plan again (now with the ICP correction against the first cloud), hop-map. The estimates are
+scored against the simulator's truth, read from the hop products' truth/ and from the world itself.
+"""
+from __future__ import annotations
+
+import itertools
+import json
+import math
+import tomllib
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest import SMALL_WORLD, pairs
+from drivers.sim.config import WorldConfig
+from drivers.sim.world import World
+from rvs_server.modules.hopping_store import read_ply
+
+HOPPING = """sfm_threads = 1   # repeatable reconstructions: COLMAP's threads finish in varying order
+[hopper.camera]
+width = 320
+height = 240
+motion_blur = false
+"""
+ROVER_RADIUS = 0.15   # hopping.toml rover_radius_m
+OBSTACLE_STEP = 0.08  # hopping.toml obstacle_m
+TAGS = itertools.count(1)
+
+
+def command(client, line: str, timeout: float = 30.0) -> tuple[str, list[str]]:
+    """The final reply and the PROGRESS lines before it."""
+    tag = f"h{next(TAGS)}"
+    client.send(f"@{tag} {line}")
+    return client.reply(tag, timeout)
+
+
+def landing_error(products: Path, plan: str, hop: str) -> tuple[float, float]:
+    """(horizontal error of the estimated touchdown, true hop range), from the plan's estimate and the
+    hop's truth; the map's heights start at the start's ground, so only x, y are compared."""
+    estimate = json.loads((products / plan / "estimate.json").read_text())
+    truth = json.loads((products / hop / "truth" / "hop.json").read_text())["truth"]
+    error = math.dist(estimate["touchdown_m"][:2], truth["landing"]["centre_m"][:2])
+    return error, truth["flight"]["range_m"]
+
+
+def footprint_clear(world: World, x: float, y: float) -> bool:
+    """No true obstacle cell within the rover's radius of (x, y)."""
+    cell, reach = world.grid.cell, ROVER_RADIUS + 0.05
+    mask = world.obstacle_mask(OBSTACLE_STEP, cell, (x - reach, x + reach), (y - reach, y + reach))
+    rows, cols = np.nonzero(mask)
+    return not np.any(np.hypot((cols + 0.5) * cell - reach, (rows + 0.5) * cell - reach) <= ROVER_RADIUS)
+
+
+@pytest.fixture(scope="module")
+def world() -> World:
+    return World.build(WorldConfig.model_validate(tomllib.loads(SMALL_WORLD)))
+
+
+def test_hop_plan_chain_and_global_map(server_factory, world):
+    server = server_factory(configs={"hopping.toml": HOPPING})
+    products = server.data_dir / "products"
+    with server.connect(timeout=300) as c:
+        # Nothing to plan or map before the first hop.
+        assert "ERR 409 wrong-mode hop-plan: no hop yet" in c.command("hop-plan")
+        assert "ERR 409 wrong-mode hop-map: no hop reconstructed yet" in c.command("hop-map")
+
+        line, progress = command(c, "hop --speed 1.5 --elevation 60 --heading 0", timeout=120)
+        hop = pairs(line)
+        assert set(hop) == {"job", "product", "path", "frames", "flight_time"}, line   # no truth in the reply
+        assert hop["product"] == "hop-001" and int(hop["frames"]) > 40 and 1.0 < float(hop["flight_time"]) < 2.5
+        assert progress and all(" PROGRESS " in p for p in progress)
+        folder = products / "hop-001"
+        for name in ("frames.npz", "hop.json", "sensors.json", "frames.png", "truth/hop.json", "truth/poses.npz"):
+            assert (folder / name).exists(), name
+        assert "truth" not in json.loads((folder / "hop.json").read_text())   # truth only under truth/
+
+        line, progress = command(c, "hop-plan", timeout=240)
+        plan = pairs(line)
+        assert {"target", "speed", "elevation", "heading", "position", "product"} <= set(plan), line
+        assert plan["product"] == "hop-plan-001" and any("structure from motion" in p for p in progress)
+        target = [float(v) for v in plan["target"].split(",")]
+        assert footprint_clear(world, *target), f"target {target} on a rock"
+        folder = products / "hop-plan-001"
+        for name in ("trajectory.png", "topdown.png", "height.png", "obstacles.png", "safe.png", "selection.png",
+                     "cloud.ply", "sparse.ply", "height.tif", "trajectory.csv", "estimate.json", "sfm.npz",
+                     "truth/comparison.json", "truth/obstacles.png"):
+            assert (folder / name).exists(), name
+        estimate = json.loads((folder / "estimate.json").read_text())
+        assert {"sfm", "dense", "estimate", "plan", "write"} <= set(json.loads(
+            (folder / "product.json").read_text())["timings_s"])
+        assert estimate["registered"] >= 0.9 * estimate["frames"] and estimate["plan"]["found"]
+        error, hop_range = landing_error(products, "hop-plan-001", "hop-001")
+        print(f"\nhop 1: landing {error * 100:.1f} cm off over {hop_range:.2f} m ({100 * error / hop_range:.1f} %)")
+        assert error < 0.03 * hop_range          # measured: 1.5 cm over 1.24 m (1.2 %)
+
+        # The hop the plan advised, then hop-plan corrects the launch (the bounce) by ICP against hop 1's cloud.
+        line = c.command(f"hop --speed {plan['speed']} --elevation {plan['elevation']} --heading {plan['heading']}",
+                         timeout=120)
+        assert pairs(line)["product"] == "hop-002", line
+        line = c.command("hop-plan --goal 4,3", timeout=240)
+        second = pairs(line)
+        assert "target" in second, line
+        assert footprint_clear(world, *(float(v) for v in second["target"].split(",")))
+        comparison = json.loads((products / "hop-plan-002" / "truth" / "comparison.json").read_text())
+        icp = json.loads((products / "hop-plan-002" / "estimate.json").read_text())["icp"]
+        error, hop_range = landing_error(products, "hop-plan-002", "hop-002")
+        print(f"hop 2: launch {comparison['launch_before_icp']['horizontal_error_m'] * 100:.1f} cm off before ICP, "
+              f"{comparison['launch_after_icp']['horizontal_error_m'] * 100:.1f} cm after (used: {icp['used']}); "
+              f"landing {error * 100:.1f} cm off over {hop_range:.2f} m ({100 * error / hop_range:.1f} %)")
+        assert icp["used"] and icp["against"] == "hop-plan-001"
+        launch_errors = [comparison[k]["horizontal_error_m"] for k in ("launch_before_icp", "launch_after_icp")]
+        assert launch_errors[1] < 0.5 * launch_errors[0]   # measured: 19.4 cm before, 4.4 cm after
+        assert error < 0.05 * hop_range          # measured: 0.9 cm over 1.73 m (0.5 %); 1-6 cm on every core
+
+        line = c.command("hop-map", timeout=120)
+        reply = pairs(line)
+        assert reply.get("hops") == "2", line
+    folder = products / reply["product"]
+    for name in ("map.png", "map-hops.png", "map.ply", "map.json", "hops-per-cell.tif"):
+        assert (folder / name).exists(), name
+    vertices = read_ply(folder / "map.ply")
+    assert set(np.unique(vertices["hop"])) == {1, 2} and len(vertices) == int(reply["points"])
+
+
+def test_bad_options_name_the_field_and_change_nothing(server_factory):
+    server = server_factory(configs={"hopping.toml": HOPPING})
+    with server.connect() as c:
+        for line, field in (("hop --speed 0 --elevation 60 --heading 0", "--speed"),
+                            ("hop --speed 3.5 --elevation 60 --heading 0", "--speed"),
+                            ("hop --speed 1 --elevation 85 --heading 0", "--elevation"),
+                            ("hop --speed 1 --elevation 9 --heading 0", "--elevation"),
+                            ("hop --speed 1 --elevation 60 --heading 181", "--heading"),
+                            ("hop --speed 1 --elevation 60", "--heading"),
+                            ("hop --speed fast --elevation 60 --heading 0", "--speed"),
+                            ("hop-plan --goal-heading 270", "--goal-heading"),
+                            ("hop-plan --goal 1", "--goal"),
+                            ("hop-map --cell 0", "--cell")):
+            reply = c.command(line)
+            assert reply.split()[1:3] == ["ERR", "400"] and field in reply, (line, reply)
+        assert "max_speed_mps" in c.command("hop --speed 3.5 --elevation 60 --heading 0")
+        assert "given together" in c.command("hop-plan --goal 1,2 --goal-heading 10")
+        assert "OK" in c.command("check hop --speed 1 --elevation 60 --heading 0")
+    assert not list((server.data_dir / "products").glob("hop-*"))
+
+
+def test_real_backend_says_what_is_missing(server_factory):
+    server = server_factory(configs={"hopping.toml": 'backend = "real"\n'})
+    with server.connect() as c:
+        reply = c.command("hop --speed 1 --elevation 60 --heading 0")
+    assert reply.split()[1:4] == ["ERR", "503", "device"] and "hopper" in reply and "not implemented" in reply, reply
