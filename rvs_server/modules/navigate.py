@@ -26,9 +26,8 @@ from typing import Any, Literal
 
 import numpy as np
 from pydantic import Field
-from scipy.ndimage import binary_fill_holes
 
-from ..config import CommandConfig, Point, Range, SafeName
+from ..config import CommandConfig, Point, SafeName
 from ..jobs import JobContext
 from ..mapping_ops import operations
 from ..products import ProductPart
@@ -36,7 +35,7 @@ from ..protocol import BadRequest, Timeout
 from ..rasters import read_geotiff
 from ..toolbox.geometry import RoverPose
 from ..toolbox.localisation import merge_clouds
-from ..toolbox.planning import (MapLayers, blank_map_spanning, distance_to_border, drivable_prefix, fuse_nearest,
+from ..toolbox.planning import (MapLayers, blank_map_spanning, drivable_prefix, fuse_nearest,
                                 nearest_open_cell, plan_path)
 from ..toolbox.planning_paths import path_length
 from ..workflow import WorkflowError, resolve_params, run_workflow

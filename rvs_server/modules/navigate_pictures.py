@@ -19,6 +19,7 @@ from ..rasters import write_png
 from ..toolbox.colour import categorical, colourise, with_key, with_title
 from ..toolbox.grid import GridSpec
 from ..toolbox.planning import MapLayers
+from .grid_canvas import Canvas as GridCanvas
 
 PICTURE_SIZE = 720
 WHITE, YELLOW, MAGENTA, GREEN, CYAN = (255, 255, 255), (250, 210, 40), (255, 60, 255), (60, 230, 60), (0, 230, 255)
@@ -51,24 +52,11 @@ def write_traverse(ctx: Any, product: Any, state: Any, goal: tuple[float, float]
                           "and (simulated) true paths; true obstacles beside it"), with_title(picture, title[:160]))
 
 
-class Canvas:
-    """A north-up picture of a grid, enlarged, with world (x, y) to pixel conversion."""
+class Canvas(GridCanvas):
+    """The traverse pictures' canvas: start and goal marked alike on both panels."""
 
     def __init__(self, rgb: np.ndarray, spec: GridSpec):
-        self.spec = spec
-        self.factor = max(1, int(math.ceil(PICTURE_SIZE / max(rgb.shape[:2]))))
-        image = np.flipud(rgb)
-        self.image = np.ascontiguousarray(np.repeat(np.repeat(image, self.factor, 0), self.factor, 1))
-
-    def pixel(self, xy) -> tuple[int, int]:
-        col = (xy[0] - self.spec.origin_x) / self.spec.cell * self.factor
-        row = (self.spec.rows - (xy[1] - self.spec.origin_y) / self.spec.cell) * self.factor
-        return int(round(col)), int(round(row))
-
-    def line(self, points, colour, width: int = 2) -> None:
-        if len(points) > 1:
-            cv2.polylines(self.image, [np.array([self.pixel(p) for p in points], np.int32)], False, colour, width,
-                          cv2.LINE_AA)
+        super().__init__(rgb, spec, PICTURE_SIZE)
 
     def ends(self, start, goal) -> None:
         cv2.circle(self.image, self.pixel(start), 7, GREEN, 2)
@@ -113,7 +101,7 @@ def truth_panel(ctx: Any, spec: GridSpec, truth: dict, goal, state: Any) -> np.n
     for x, y, heading in truth["path"][::4]:
         if _touches(world, rover, x, y, heading, truth["step_height_m"]):
             corners = _corners(x, y, heading, length, width)
-            cv2.polylines(canvas.image, [np.array([canvas.pixel(c) for c in corners], np.int32)], True, WHITE, 1)
+            cv2.polylines(canvas.image, [canvas.pixels(corners)], True, WHITE, 1)
     canvas.ends(state.start, goal)
     return with_key(canvas.image, [("clear", (70, 160, 70)), (f"rock > {truth['step_height_m']} m", (220, 60, 50)),
                                    ("true path", MAGENTA), ("footprint on a rock", WHITE)],

@@ -23,12 +23,13 @@ from ..dispatch import Call, Module
 from ..jobs import JobContext
 from ..protocol import BadRequest, WrongMode
 from ..rasters import read_geotiff, write_geotiff, write_png
-from ..toolbox.colour import colourise, upscale, with_colour_bar, with_title
+from ..toolbox.colour import colourise, with_colour_bar, with_title
 from ..toolbox.geometry import RoverPose
 from ..toolbox.grid import GridSpec
 from ..toolbox.hazard import HAZARD, UNKNOWN
-from ..toolbox.planning import (MapLayers, PlanningParams, blank_map_spanning, distance_to_border,
+from ..toolbox.planning import (MapLayers, PlanningParams, blank_map_spanning, cells_to_world, distance_to_border,
                                 drivable_prefix, fuse_maps, plan_path, terrain_cost)
+from .grid_canvas import Canvas
 
 
 class NavigationSettings(Settings):
@@ -220,26 +221,16 @@ def write_plan(product: Any, fused: MapLayers, plan: Any, drivable: Any, local: 
 
 def draw_path(rgb: np.ndarray, spec: GridSpec, plan: Any, drivable: Any, start, goal) -> np.ndarray:
     """The path, waypoints, start and goal drawn on a grid picture (north up, enlarged)."""
-    factor = max(1, int(math.ceil(600 / max(rgb.shape[:2]))))
-    image = np.ascontiguousarray(upscale(np.flipud(rgb), 600))
-
-    def pixel(xy) -> tuple[int, int]:
-        col = (xy[0] - spec.origin_x) / spec.cell * factor
-        row = (spec.rows - (xy[1] - spec.origin_y) / spec.cell) * factor
-        return int(round(col)), int(round(row))
-
+    canvas = Canvas(rgb, spec, 600)
     if plan.found and len(plan.cells):
-        path_xy = np.column_stack([spec.origin_x + (plan.cells[:, 1] + 0.5) * spec.cell,
-                                   spec.origin_y + (plan.cells[:, 0] + 0.5) * spec.cell])
-        cv2.polylines(image, [np.array([pixel(p) for p in path_xy], np.int32)], False, (255, 255, 255), 1)
+        canvas.line(cells_to_world(spec, plan.cells), (255, 255, 255), 1, antialiased=False)
         for point in plan.waypoints:
-            cv2.circle(image, pixel(point), 3, (255, 210, 0), -1)
-        if drivable is not None and len(drivable.waypoints) > 1:
-            cv2.polylines(image, [np.array([pixel(p) for p in drivable.waypoints], np.int32)], False,
-                          (0, 230, 255), 2)
-    cv2.circle(image, pixel(start), 5, (0, 255, 0), 2)
-    cv2.drawMarker(image, pixel(goal), (255, 0, 255), cv2.MARKER_CROSS, 12, 2)
-    return image
+            cv2.circle(canvas.image, canvas.pixel(point), 3, (255, 210, 0), -1)
+        if drivable is not None:
+            canvas.line(drivable.waypoints, (0, 230, 255), 2, antialiased=False)
+    cv2.circle(canvas.image, canvas.pixel(start), 5, (0, 255, 0), 2)
+    cv2.drawMarker(canvas.image, canvas.pixel(goal), (255, 0, 255), cv2.MARKER_CROSS, 12, 2)
+    return canvas.image
 
 
 @module.immediate("pose", PoseConfig, positionals=("pose",))
