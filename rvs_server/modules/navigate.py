@@ -156,14 +156,15 @@ class Navigation:
     def map_cycle(self) -> None:
         state, cycle = self.state, self.state.cycle
         full = cycle == 1 or state.stalls > 0
-        self.progress(f"cycle {cycle}: mapping ({'full panorama' if full else 'ahead'})")
+        pan = self.settings.first_pan if full else self.settings.cycle_pan
+        self.progress(f"cycle {cycle}: mapping (pan {pan[0]:g}:{pan[1]:g})")
         command = f"navigate-{self.cfg.sensor}"
         workflow = check_workflow(self.server, command, NavigateArgs)
         tilt = self.mapping.tof_tilt if self.cfg.sensor == "tof" else self.mapping.stereo_tilt
         reference = self._map_cloud_path(cycle - 1)
         metres, degrees = state.moved
         # How far odometry can be off since the last map: the alignment believes no more than this.
-        args = NavigateArgs(pan=self.settings.first_pan if full else self.settings.cycle_pan, tilt=tilt,
+        args = NavigateArgs(pan=pan, tilt=tilt,
                             cell=self.mapping.cell, overlap=self.mapping.overlap,
                             reference=str(reference) if reference is not None else "",
                             max_translation_m=0.3 + 0.15 * metres,
