@@ -125,6 +125,16 @@ def test_an_isolated_known_cell_is_unknown_not_safe():
     assert H.hazard_maps(heights, CELL).code[25, 25] == H.UNKNOWN
 
 
+def test_a_rock_spreads_no_slope_or_roughness_around_itself():
+    heights, box = box_on_ground(0.30, 12)           # a 0.6 m rock, 0.3 m tall
+    maps = H.hazard_maps(heights, CELL)
+    hazard = H.is_hazard(maps.code)
+    assert hazard[box].all()                          # the rock is a step hazard
+    beside = ndimage.binary_dilation(box, iterations=2) & ~box
+    assert not hazard[~box & ~beside].any()           # nothing beyond 2 cells of its edge
+    assert (maps.code[box] & H.STEP).all()
+
+
 def test_roughness_limit_flags_a_rubble_field():
     rng = np.random.default_rng(3)
     heights = np.zeros((120, 120))
