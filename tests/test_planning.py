@@ -14,7 +14,8 @@ from rvs_server.toolbox.grid import GridSpec
 from rvs_server.toolbox.planning import (MapLayers, PlanningParams, apply_unknown_policy, astar,
                                          blank_map_spanning, cells_to_world, dijkstra_reference,
                                          distance_to_border, douglas_peucker, drivable_prefix, fuse_maps,
-                                         inflate_hazards, path_cost, path_length, plan_path, proximity_cost,
+                                         inflate_hazards, keep_route, path_cost, path_length, plan_path,
+                                         polyline_cost, proximity_cost,
                                          resample_onto, segment_cells, segment_is_clear, simplify_path,
                                          terrain_cost, world_to_cells)
 from rvs_server.toolbox.planning_search import ASTAR_SLACK
@@ -391,6 +392,54 @@ def test_plan_path_round_a_rock():
     assert result.length_m >= path_length(result.waypoints) - 1e-9
     reference = dijkstra_reference(result.cost_grid, result.cells[0], result.cells[-1], 0.7, 0.1)
     assert result.cost == pytest.approx(reference, abs=1e-9)
+
+
+def test_polyline_cost_is_length_times_cost_per_metre_without_staircase():
+    spec = GridSpec(0.0, 0.0, 0.1, 40, 40)
+    cost = np.full(spec.shape, 0.4)
+    line = np.array([[0.25, 0.25], [3.25, 3.25], [3.25, 0.35]])
+    assert polyline_cost(line, cost, spec, 0.5) == pytest.approx(path_length(line) * (0.5 + 0.5 * 0.4))
+    cost[20, :] = np.inf                                   # a wall across the second leg's way back
+    assert polyline_cost(line, cost, spec, 0.5) == math.inf
+    assert polyline_cost(np.array([[0.25, 0.25], [9.0, 0.25]]), cost, spec, 0.5) == math.inf   # off the grid
+
+
+def two_ways_round_a_wall(dearer_side: str | None) -> tuple[MapLayers, PlanningParams]:
+    """A wall across the middle with gaps at both ends; one side's ground a little dearer."""
+    spec = GridSpec(0.0, 0.0, 0.1, 60, 60)
+    hazard = np.zeros(spec.shape, dtype=bool)
+    hazard[28:32, 8:52] = True
+    cost = np.zeros(spec.shape)
+    if dearer_side == "west":
+        cost[:, :30] = 0.1
+    elif dearer_side == "east":
+        cost[:, 30:] = 0.1
+    return MapLayers(spec, cost, hazard, np.zeros(spec.shape, bool)), PlanningParams(weight=0.5, rover_radius_m=0.2,
+                                                                                     hazard_margin_m=0.1)
+
+
+def test_keep_route_stays_on_a_near_equal_route_and_drops_a_blocked_or_clearly_worse_one():
+    start, goal = (2.95, 0.55), (2.95, 5.45)
+    layers, params = two_ways_round_a_wall("east")
+    west = plan_path(layers, start, goal, params)
+    assert west.found and west.waypoints[:, 0].min() < 1.0          # round the wall's west end
+    # The next look makes the west a little dearer: the new plan goes east, the old route is kept.
+    layers, params = two_ways_round_a_wall("west")
+    east = plan_path(layers, start, goal, params)
+    assert east.waypoints[:, 0].max() > 5.0
+    kept = keep_route(east, west.waypoints, start, layers.spec, params, hysteresis=0.2)
+    assert kept.kept and kept.waypoints[:, 0].min() < 1.0
+    assert kept.waypoints[0] == pytest.approx(start) and kept.waypoints[-1] == pytest.approx(goal)
+    assert kept.cost == pytest.approx(polyline_cost(kept.waypoints, east.cost_grid, layers.spec, 0.5))
+    assert not keep_route(east, west.waypoints, start, layers.spec, params, hysteresis=0.0).kept
+    assert not keep_route(east, west.waypoints, start, layers.spec, params, hysteresis=0.01).kept
+    # A rock on the old route drops it whatever the hysteresis.
+    hazard = layers.hazard.copy()
+    hazard[28:32, 0:8] = True
+    blocked = plan_path(MapLayers(layers.spec, layers.cost, hazard, layers.unknown), start, goal, params)
+    assert not keep_route(blocked, west.waypoints, start, layers.spec, params, hysteresis=5.0).kept
+    # A rover far off the old route (more than join_m) plans afresh.
+    assert not keep_route(east, west.waypoints + [0.0, 2.0], start, layers.spec, params, hysteresis=5.0).kept
 
 
 def test_no_path_reasons():

@@ -6,7 +6,9 @@ placed where odometry said. Here each cycle
   1. maps the surroundings with the sensor (workflows/navigate-<sensor>.yaml), aligning the new
      points to the map of the earlier cycles first: the alignment corrects the odometry pose;
   2. stops if the corrected position is within the tolerance of the goal;
-  3. plans on a blank global map spanning rover and goal fused with every cycle's local map;
+  3. plans on a blank global map spanning rover and goal fused with every cycle's local map, and
+     keeps the last cycle's route while it stays clear and near the new plan's cost (a rover that
+     re-chose after every look would swing between near-equal ways round);
   4. hands out the part of the path inside the newest map and a margin from its border, at most
      max_drive_m long: in the simulation the rover drives it (turn, then straight, with drive
      error: drivers/sim/motion.py); with a real rover the waypoints go out as a `navigate` event
@@ -35,7 +37,7 @@ from ..protocol import BadRequest, Timeout
 from ..rasters import read_geotiff
 from ..toolbox.geometry import RoverPose
 from ..toolbox.localisation import merge_clouds
-from ..toolbox.planning import (MapLayers, blank_map_spanning, drivable_prefix, fuse_nearest,
+from ..toolbox.planning import (MapLayers, blank_map_spanning, drivable_prefix, fuse_nearest, keep_route,
                                 nearest_open_cell, plan_path)
 from ..toolbox.planning_paths import path_length
 from ..workflow import WorkflowError, resolve_params, run_workflow
@@ -71,6 +73,8 @@ class Traverse:
     odometry_path: list[list[float]] = field(default_factory=list)
     true_path: list[list[float]] = field(default_factory=list)
     to_drive: list[list[float]] = field(default_factory=list)
+    route: list[list[float]] = field(default_factory=list)  # the last plan's waypoints, kept while good enough
+    route_aim: list[float] = field(default_factory=list)
     cycles: list[dict[str, Any]] = field(default_factory=list)
     contacts: int = 0
     stalls: int = 0
@@ -222,6 +226,10 @@ class Navigation:
             elif self.distance_to_goal() > self.settings.confirm_range_m:
                 # Seen from afar (a few noisy pixels): go and look from close by before refusing.
                 plan = plan_path(unseen_near(fused, self.goal, self.settings.confirm_range_m / 2), start, aim, params)
+        if state.route and math.dist(state.route_aim, aim) < 1e-6:
+            plan = keep_route(plan, np.array(state.route), start, fused.spec, params, self.settings.route_hysteresis)
+        if plan.found:
+            state.route, state.route_aim = plan.waypoints.tolist(), list(aim)
         # What is handed out stays inside what the cycles have mapped, a margin from its border.
         border = handout_border(fused, state.rover, self.settings)
         drivable = drivable_prefix(plan.waypoints, fused.spec, border, self.settings.border_margin_m) if plan.found else None
@@ -230,7 +238,7 @@ class Navigation:
         ortho = read_geotiff(ortho_path)[0] if ortho_path.exists() else np.full(newest.spec.shape, np.nan)
         write_plan(part, fused, plan, drivable, newest, ortho, start, aim)
         record = state.cycles[-1]
-        record["plan"] = {"found": plan.found, "reason": plan.reason, "aim": list(aim),
+        record["plan"] = {"found": plan.found, "reason": plan.reason, "aim": list(aim), "kept": plan.kept,
                           "length_m": plan.length_m if plan.found else None}
         if not plan.found:
             self.fail(plan.reason, plan.message, fused=fused)

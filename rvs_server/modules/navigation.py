@@ -56,6 +56,8 @@ class NavigationSettings(Settings):
     first_pan: Range = Field((-180.0, 180.0), description="pan range of the first cycle's map (and after a stall)")
     cycle_pan: Range = Field((-180.0, 180.0), description="pan range of later cycles' maps, relative to the rover")
     max_drive_m: float = Field(3.0, gt=0, description="drive at most this far before mapping again")
+    route_hysteresis: float = Field(0.25, ge=0, description="navigate keeps its last route while it is clear and "
+                                    "costs at most this fraction more than a new plan; 0: replan from scratch")
     min_progress_m: float = Field(0.15, gt=0, description="a safe part shorter than this is a stall")
     drive_speed_m_s: float = Field(0.3, gt=0, description="simulated rover speed")
     turn_rate_deg_s: float = Field(20.0, gt=0, description="simulated rover turn rate")

@@ -24,11 +24,11 @@ from .planning_costs import (UNKNOWN_POLICIES, InflatedHazards, UnknownPolicy, a
 from .planning_fusion import MapLayers, blank_map, blank_map_spanning, fuse_maps, fuse_nearest, resample_onto
 from .planning_paths import (DrivablePrefix, cells_to_world, distance_to_border, douglas_peucker,
                              drivable_prefix, path_length, segment_cells, segment_is_clear, simplify_path,
-                             world_to_cells)
-from .planning_search import SearchResult, astar, dijkstra_reference, path_cost
+                             world_to_cells, world_to_grid)
+from .planning_search import SearchResult, astar, cost_per_metre, dijkstra_reference, path_cost
 
 __all__ = [
-    "PlanningParams", "PlanResult", "plan_path", "planning_cost",
+    "PlanningParams", "PlanResult", "plan_path", "planning_cost", "polyline_cost", "keep_route",
     "terrain_cost", "inflate_hazards", "InflatedHazards", "proximity_cost", "apply_unknown_policy",
     "UnknownPolicy", "UNKNOWN_POLICIES",
     "astar", "dijkstra_reference", "path_cost", "SearchResult",
@@ -77,6 +77,7 @@ class PlanResult:
     length_m: float             # A* path length; inf without a path
     cost_grid: np.ndarray = field(repr=False)  # what A* searched: +inf where blocked
     hazards: InflatedHazards = field(repr=False)
+    kept: bool = False          # True: the previous route, kept over a new plan (keep_route)
 
 
 def plan_path(planning_map: MapLayers, start_xy: tuple[float, float], goal_xy: tuple[float, float],
@@ -108,6 +109,61 @@ def plan_path(planning_map: MapLayers, start_xy: tuple[float, float], goal_xy: t
                       waypoint_cells=search.cells[keep], waypoints=cells_to_world(spec, search.cells[keep]),
                       cost=search.cost, length_m=path_length(cells_to_world(spec, search.cells)),
                       cost_grid=cost, hazards=hazards)
+
+
+def polyline_cost(points_xy: np.ndarray, cost_grid: np.ndarray, spec: GridSpec, weight: float) -> float:
+    """Cost of driving straight segments on the planning metric: each segment's length times the
+    cost per metre of the cells it crosses, weighted by the length inside each; inf if a segment
+    crosses a blocked cell or leaves the grid. Comparing routes on their segments, not on A* cell
+    chains, keeps an 8-connected staircase from looking longer than the line it stands for."""
+    points = np.asarray(points_xy, dtype=np.float64).reshape(-1, 2)
+    per_metre = cost_per_metre(cost_grid, weight)
+    rc = world_to_grid(spec, points)
+    total = 0.0
+    for a, b, length in zip(rc[:-1], rc[1:], np.linalg.norm(np.diff(points, axis=0), axis=1)):
+        cells, t = segment_cells(a, b)
+        if not ((cells >= 0) & (cells < cost_grid.shape)).all():
+            return float("inf")
+        share = np.diff(np.append(t, 1.0))
+        total += length * float(np.sum(share * per_metre[cells[:, 0], cells[:, 1]]))
+    return total
+
+
+def keep_route(plan: PlanResult, previous_xy: np.ndarray | None, start_xy: tuple[float, float], spec: GridSpec,
+               params: PlanningParams, hysteresis: float, join_m: float = 1.0) -> PlanResult:
+    """The previous route from where the rover stands instead of the new plan, while it is still
+    clear and costs at most (1 + hysteresis) times the new plan (both as straight segments).
+
+    Replanning from scratch after every look makes a rover swing between near-equal routes: each
+    look at unknown ground makes the side just seen dearer than the side not yet seen, so it turns
+    back and forth, driving far and arriving late or never. Commitment with a margin damps that;
+    a route that a new look blocks, or that has become clearly worse, is still dropped at once."""
+    if not plan.found or previous_xy is None or len(previous_xy) < 2 or hysteresis <= 0:
+        return plan
+    previous = np.asarray(previous_xy, dtype=np.float64).reshape(-1, 2)
+    start = np.asarray(start_xy, dtype=np.float64)
+    # Join at the point of the previous route nearest the rover.
+    a, b = previous[:-1], previous[1:]
+    d = b - a
+    t = np.clip(np.einsum("ij,ij->i", start - a, d) / np.maximum(np.einsum("ij,ij->i", d, d), 1e-12), 0.0, 1.0)
+    foot = a + t[:, None] * d
+    k = int(np.argmin(np.linalg.norm(foot - start, axis=1)))
+    if np.linalg.norm(foot[k] - start) > join_m:
+        return plan
+    route = np.vstack([start, foot[k], previous[k + 1:]])
+    route = route[np.r_[True, np.linalg.norm(np.diff(route, axis=0), axis=1) > 1e-6]]
+    if len(route) < 2:
+        return plan
+    old = polyline_cost(route, plan.cost_grid, spec, params.weight)
+    new = polyline_cost(plan.waypoints, plan.cost_grid, spec, params.weight)
+    if not np.isfinite(old) or old > (1.0 + hysteresis) * new:
+        return plan
+    rc = np.rint(world_to_grid(spec, route)).astype(np.int64)
+    cells = np.vstack([segment_cells(p, q)[0] for p, q in zip(rc[:-1], rc[1:])] + [rc[-1:]])
+    cells = cells[np.r_[True, np.abs(np.diff(cells, axis=0)).sum(axis=1) > 0]]
+    return PlanResult(found=True, reason="", message="", cells=cells, waypoint_cells=rc, waypoints=route,
+                      cost=old, length_m=path_length(route), cost_grid=plan.cost_grid, hazards=plan.hazards,
+                      kept=True)
 
 
 def nearest_open_cell(cost_grid: np.ndarray, spec: GridSpec, goal_xy: tuple[float, float],
