@@ -1,0 +1,312 @@
+"""The hopping paper's simulated experiments, through a real server on seeded worlds, scored against
+the simulator's truth.
+
+chains   (paper Table 1) per scene: a first hop of about 1 m in a random direction, then five times
+         hop-plan and a hop to the target it chose (about 1 m, 60 degrees, Moon gravity; the
+         paper's 640x480 wide-angle camera at 34 Hz, about 50 frames a hop, motion blur; two
+         bounces after each touchdown that the rover cannot see). Per hop, the error of the
+         estimated touchdown as a percentage of the true touchdown's distance from the start:
+           with ICP     hop-plan's estimate (each launch corrected against the previous hop's cloud)
+           without ICP the same hops' reconstructed displacements chained from the start, each hop
+                       launched where the last one was believed to touch down (bounces unseen)
+         and each chosen target against the true obstacles, and how far the next hop truly
+         touched down from it.
+singles  hops of 1-10 m at random elevations 45-70 degrees with launch errors and spin, each from
+         where the last one came to rest: the hop's reconstructed displacement (touchdown less
+         corrected launch) against the true one, as a percentage of the true hop length (the paper:
+         under 4 % on average, never over 10 %).
+timing   hop-plan's steps (sfm, dense, estimate, plan, write) for every hop, and the server's peak
+         resident memory (VmHWM) over the whole run.
+
+    .venv/bin/python tests/bench/measure_hopping.py chains [--scenes 5] [--first-seed 301] [--jobs 2]
+    .venv/bin/python tests/bench/measure_hopping.py singles [--hops 30] [--first-seed 401] [--jobs 2]
+    .venv/bin/python tests/bench/measure_hopping.py report [--out /tmp/rvs-hopping]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import shutil
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(REPO / "tests"))
+sys.path.insert(0, str(REPO))
+from conftest import ServerProcess, pairs  # noqa: E402
+
+MOON_G = 1.62
+PAPER_TABLE_1 = "paper Table 1 (simulated, 5-hop chains): with ICP 1.0-1.9 %, without 12.9-34.7 %"
+WORLD = """seed = {seed}
+size_m = [{size}, {size}]
+[rocks]
+cover = {cover}
+"""
+
+
+def speed_for(distance: float, elevation_deg: float) -> float:
+    """Launch speed of a hop of `distance` on flat ground at the elevation."""
+    return math.sqrt(distance * MOON_G / math.sin(2 * math.radians(elevation_deg)))
+
+
+def start_server(root: Path, seed: int, size: float, cover: float, settings: str = "",
+                 launch_errors: str = "") -> ServerProcess:
+    """A server on a fresh data directory with the repository's configs, the scene's world, the hopper
+    seeded by the scene, and hopping.toml settings (top level) and launch errors added."""
+    shutil.rmtree(root, ignore_errors=True)
+    configs = root / "configs"
+    shutil.copytree(REPO / "configs", configs)
+    (configs / "world.toml").write_text(WORLD.format(seed=seed, size=size, cover=cover))
+    text = (configs / "hopping.toml").read_text()
+    for old, new in (("[hopper]\nseed = 5", f"[hopper]\nseed = {seed}"),
+                     ("[hopper.launch_errors]", f"[hopper.launch_errors]\n{launch_errors}")):
+        if old not in text:
+            raise RuntimeError(f"configs/hopping.toml has no {old!r} to change")
+        text = text.replace(old, new)
+    (configs / "hopping.toml").write_text(settings + text)
+    return ServerProcess(data_dir=root / "data", config_dir=configs).start(timeout=300)
+
+
+def peak_memory_mib(server: ServerProcess) -> float:
+    for line in Path(f"/proc/{server.proc.pid}/status").read_text().splitlines():
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1]) / 1024.0
+    return float("nan")
+
+
+def hop_and_plan(client, products: Path, hop: str, plan: str) -> dict:
+    """One `hop` then `hop-plan`; what the products say of both (the plan's estimate, truth, timings)."""
+    reply = client.command(hop, timeout=600)
+    if " OK " not in f" {reply} ":
+        raise RuntimeError(f"{hop}: {reply}")
+    hop_name = pairs(reply)["product"]
+    started = time.perf_counter()
+    reply = client.command(plan, timeout=1800)
+    seconds = time.perf_counter() - started
+    fields = pairs(reply)
+    name = fields.get("product") or reply.split("product=")[-1].split()[0].rstrip(";")
+    folder = products / name
+    if not (folder / "estimate.json").exists():
+        raise RuntimeError(f"{plan}: {reply}")
+    estimate = json.loads((folder / "estimate.json").read_text())
+    truth = json.loads((products / hop_name / "truth" / "hop.json").read_text())["truth"]
+    comparison = json.loads((folder / "truth" / "comparison.json").read_text())
+    frames = json.loads((products / hop_name / "hop.json").read_text())
+    return {"hop": hop_name, "plan": name, "reply": reply[:300], "ok": " OK " in f" {reply} ", "seconds": seconds,
+            "frames": estimate["frames"], "registered": estimate["registered"], "timings_s": estimate["timings_s"],
+            "touchdown_m": estimate["touchdown_m"], "launch_corrected_m": estimate["launch"]["corrected_m"],
+            "icp": estimate["icp"], "target_m": estimate["plan"]["target_m"] if estimate["plan"]["found"] else None,
+            "launch": estimate["plan"]["launch"], "truth": truth, "comparison": comparison,
+            "hop_frames_note": {k: frames[k] for k in ("frame_rate_hz",) if k in frames}}
+
+
+# ------------------------------------------------------------------------------------ chains
+def chain(seed: int, out: Path, hops: int, size: float, cover: float, sim_speed: float) -> dict:
+    import conftest
+    conftest.SIM_SPEED = sim_speed
+    root = out / f"chain{seed}"
+    server = start_server(root, seed, size, cover)
+    products = root / "data" / "products"
+    heading = float(np.random.default_rng([seed, 1]).uniform(-180, 180))
+    records = []
+    try:
+        with server.connect(timeout=1800) as client:
+            hop = f"hop --speed {speed_for(1.0, 60):.4f} --elevation 60 --heading {heading:.2f}"
+            for number in range(1, hops + 1):
+                record = hop_and_plan(client, products, hop, f"hop-plan --goal-heading {heading:.2f}")
+                records.append(record)
+                print(f"chain {seed} hop {number}: {record['plan']} {record['seconds']:.0f} s", flush=True)
+                if record["launch"] is None:
+                    raise RuntimeError(f"chain {seed}: no target after hop {number}: {record['reply']}")
+                launch = record["launch"]
+                hop = (f"hop --speed {launch['speed_mps']:.4f} --elevation {launch['elevation_deg']:.3f} "
+                       f"--heading {launch['heading_deg']:.3f}")
+            memory = peak_memory_mib(server)
+    finally:
+        server.stop()
+    return {"kind": "chain", "seed": seed, "heading_deg": heading, "hops": records, "peak_memory_mib": memory}
+
+
+def chain_errors(run: dict) -> list[dict]:
+    """Per hop: touchdown error with and without ICP as a percentage of the true distance from the start."""
+    hops = run["hops"]
+    start = np.array(hops[0]["truth"]["launch"]["centre_m"][:2])
+    without = start.copy()
+    rows = []
+    for k, hop in enumerate(hops):
+        true = np.array(hop["truth"]["landing"]["centre_m"][:2])
+        with_icp = np.array(hop["touchdown_m"][:2])
+        without = without + with_icp - np.array(hop["launch_corrected_m"][:2])   # the hop's own displacement
+        distance = float(np.linalg.norm(true - start))
+        row = {"hop": k + 1, "distance_m": distance,
+               "with_icp_pct": 100 * float(np.linalg.norm(with_icp - true)) / distance,
+               "without_icp_pct": 100 * float(np.linalg.norm(without - true)) / distance,
+               "bounce_m": hop["comparison"]["next_launch"]["bounce_horizontal_m"],
+               "icp_accepted": bool(hop["icp"].get("accepted", False)) if hop["icp"] else None}
+        target = hop["comparison"].get("target")
+        if target is not None:
+            row["target_clear"] = target["footprint_clear"]
+            row["target_nearest_obstacle_m"] = target["nearest_true_obstacle_m"]
+        if k + 1 < len(hops) and hop["target_m"] is not None:
+            landed = np.array(hops[k + 1]["truth"]["landing"]["centre_m"][:2])
+            row["next_touchdown_from_target_m"] = float(np.linalg.norm(landed - np.array(hop["target_m"][:2])))
+        rows.append(row)
+    return rows
+
+
+# ------------------------------------------------------------------------------------ singles
+def singles(seed: int, out: Path, count: int, size: float, cover: float, sim_speed: float, spin: float) -> dict:
+    import conftest
+    conftest.SIM_SPEED = sim_speed
+    root = out / f"singles{seed}"
+    server = start_server(root, seed, size, cover, "max_speed_mps = 6.0\n", f"spin_deg_s = {spin}")
+    products = root / "data" / "products"
+    rng = np.random.default_rng([seed, 2])
+    records = []
+    try:
+        with server.connect(timeout=1800) as client:
+            for number in range(count):
+                distance, elevation = rng.uniform(1.0, 10.0), rng.uniform(45.0, 70.0)
+                # Toward the world's centre, so long hops stay on it.
+                hopper = records[-1]["truth"]["settled"]["centre_m"][:2] if records else [0.0, 0.0]
+                toward = math.degrees(math.atan2(-hopper[1], -hopper[0])) if math.hypot(*hopper) > 2 else None
+                heading = toward + rng.uniform(-60, 60) if toward is not None else rng.uniform(-180, 180)
+                heading = (heading + 180) % 360 - 180
+                hop = f"hop --speed {speed_for(distance, elevation):.4f} --elevation {elevation:.2f} --heading {heading:.2f}"
+                try:
+                    record = hop_and_plan(client, products, hop, "hop-plan")
+                except RuntimeError as exc:
+                    record = {"error": str(exc)[:300], "commanded_m": distance}
+                    print(f"singles {seed} hop {number + 1}: {record['error']}", flush=True)
+                    records.append(record)
+                    continue
+                record["commanded_m"] = distance
+                records.append(record)
+                print(f"singles {seed} hop {number + 1}: {distance:.1f} m, {record['frames']} frames, "
+                      f"{record['seconds']:.0f} s", flush=True)
+            memory = peak_memory_mib(server)
+    finally:
+        server.stop()
+    return {"kind": "singles", "seed": seed, "hops": records, "peak_memory_mib": memory}
+
+
+def single_errors(run: dict) -> list[dict]:
+    rows = []
+    for record in run["hops"]:
+        if "error" in record:
+            rows.append({"error": record["error"], "commanded_m": record["commanded_m"]})
+            continue
+        truth = record["truth"]
+        true = np.array(truth["landing"]["centre_m"][:2]) - np.array(truth["launch"]["centre_m"][:2])
+        estimated = np.array(record["touchdown_m"][:2]) - np.array(record["launch_corrected_m"][:2])
+        length = float(np.linalg.norm(true))
+        rows.append({"commanded_m": record["commanded_m"], "true_m": length, "frames": record["frames"],
+                     "registered": record["registered"],
+                     "displacement_error_pct": 100 * float(np.linalg.norm(estimated - true)) / length,
+                     "length_error_pct": 100 * (float(np.linalg.norm(estimated)) - length) / length,
+                     "spin_deg_s": truth["launch"].get("spin_deg_s")})
+    return rows
+
+
+# ------------------------------------------------------------------------------------ report
+def report(out: Path) -> str:
+    runs = [json.loads(line) for line in (out / "results.jsonl").read_text().splitlines()]
+    lines = []
+    chains = [r for r in runs if r["kind"] == "chain"]
+    if chains:
+        lines.append(f"chains: {len(chains)} scenes of {len(chains[0]['hops'])} hops; {PAPER_TABLE_1}")
+        table = [chain_errors(r) for r in chains]
+        lines.append("  hop  distance  with ICP %  (per scene)                    without ICP %  (per scene)")
+        for k in range(max(len(t) for t in table)):
+            rows = [t[k] for t in table if len(t) > k]
+            each = {key: " ".join(f"{r[key]:.1f}" for r in rows) for key in ("with_icp_pct", "without_icp_pct")}
+            lines.append(f"  {k + 1:3d}  {np.mean([r['distance_m'] for r in rows]):6.2f} m  "
+                         f"{np.mean([r['with_icp_pct'] for r in rows]):5.2f}  ({each['with_icp_pct']})  "
+                         f"{np.mean([r['without_icp_pct'] for r in rows]):6.2f}  ({each['without_icp_pct']})")
+        every = [r for t in table for r in t]
+        lines.append(f"  all hops: with ICP mean {np.mean([r['with_icp_pct'] for r in every]):.2f} %, max "
+                     f"{np.max([r['with_icp_pct'] for r in every]):.2f} %; without mean "
+                     f"{np.mean([r['without_icp_pct'] for r in every]):.2f} %, max "
+                     f"{np.max([r['without_icp_pct'] for r in every]):.2f} %; bounces "
+                     f"{np.mean([r['bounce_m'] for r in every]):.2f} m mean")
+        targets = [r for r in every if "target_clear" in r]
+        missed = [r["next_touchdown_from_target_m"] for r in every if "next_touchdown_from_target_m" in r]
+        lines.append(f"  targets: {sum(r['target_clear'] for r in targets)}/{len(targets)} clear of every true "
+                     f"obstacle (nearest {min(r['target_nearest_obstacle_m'] or 9e9 for r in targets):.2f} m); the "
+                     f"next first touchdown from the target: median {np.median(missed):.3f} m, max "
+                     f"{np.max(missed):.3f} m")
+    single = [r for r in runs if r["kind"] == "singles"]
+    if single:
+        rows = [row for r in single for row in single_errors(r)]
+        good = [r for r in rows if "error" not in r]
+        errors = np.array([r["displacement_error_pct"] for r in good])
+        lines.append(f"singles: {len(rows)} hops of {min(r['commanded_m'] for r in rows):.1f}-"
+                     f"{max(r['commanded_m'] for r in rows):.1f} m commanded, {len(good)} reconstructed "
+                     f"(frames {min(r['frames'] for r in good)}-{max(r['frames'] for r in good)})")
+        lines.append(f"  hop displacement error: mean {errors.mean():.2f} %, median {np.median(errors):.2f} %, "
+                     f"max {errors.max():.2f} %; over 4 %: {(errors > 4).sum()}, over 10 %: {(errors > 10).sum()} "
+                     f"(paper: under 4 % on average, never over 10 %)")
+        lines.append(f"  length error: mean {np.mean([r['length_error_pct'] for r in good]):+.2f} %, mean |.| "
+                     f"{np.mean([abs(r['length_error_pct']) for r in good]):.2f} %")
+        for r in rows:
+            if "error" in r:
+                lines.append(f"  failed: {r['commanded_m']:.1f} m: {r['error']}")
+    records = [h for r in runs for h in r["hops"] if "timings_s" in h]
+    if records:
+        steps = sorted({s for h in records for s in h["timings_s"]}, key=list(records[0]["timings_s"]).index)
+        fifty = [h for h in records if 40 <= h["frames"] <= 60] or records
+        lines.append(f"timing of hop-plan over {len(fifty)} hops of 40-60 frames (median s): " + ", ".join(
+            f"{s} {np.median([h['timings_s'].get(s, 0) for h in fifty]):.1f}" for s in steps)
+            + f"; whole command {np.median([h['seconds'] for h in fifty]):.1f}")
+        lines.append(f"peak resident memory of the server: max {max(r['peak_memory_mib'] for r in runs):.0f} MiB")
+    return "\n".join(lines)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("what", choices=["chains", "singles", "report"])
+    parser.add_argument("--scenes", type=int, default=5)
+    parser.add_argument("--hops", type=int, default=30, help="singles: hops in all (split over --jobs servers)")
+    parser.add_argument("--chain-hops", type=int, default=5)
+    parser.add_argument("--first-seed", type=int, default=None)
+    parser.add_argument("--jobs", type=int, default=2)
+    parser.add_argument("--size", type=float, default=30.0)
+    parser.add_argument("--cover", type=float, default=0.07)
+    parser.add_argument("--spin", type=float, default=20.0, help="singles: spin, deg/s one sigma per axis")
+    parser.add_argument("--sim-speed", type=float, default=100.0)
+    parser.add_argument("--out", type=Path, default=Path("/tmp/rvs-hopping"))
+    args = parser.parse_args()
+    args.out.mkdir(parents=True, exist_ok=True)
+    if args.what == "report":
+        print(report(args.out))
+        return
+    log = args.out / "results.jsonl"
+    if args.what == "chains":
+        first = args.first_seed or 301
+        tasks = [(chain, (seed, args.out, args.chain_hops, args.size, args.cover, args.sim_speed))
+                 for seed in range(first, first + args.scenes)]
+    else:
+        first = args.first_seed or 401
+        share = [args.hops // args.jobs + (i < args.hops % args.jobs) for i in range(args.jobs)]
+        tasks = [(singles, (first + i, args.out, n, args.size, args.cover, args.sim_speed, args.spin))
+                 for i, n in enumerate(share)]
+    with ProcessPoolExecutor(max_workers=args.jobs) as pool:
+        futures = [pool.submit(fn, *fn_args) for fn, fn_args in tasks]
+        for future in futures:
+            try:
+                result = future.result()
+            except Exception as exc:  # a run that cannot finish is reported, not hidden
+                print(f"ERROR {exc!r}"[:400], flush=True)
+                continue
+            with open(log, "a") as handle:
+                handle.write(json.dumps(result) + "\n")
+    print(report(args.out))
+
+
+if __name__ == "__main__":
+    main()
