@@ -125,6 +125,9 @@ class WorldConfig(_Model):
     rocks: RockConfig = RockConfig()
     albedo: AlbedoConfig = AlbedoConfig()
     sun: Sun = Sun()
+    # Where the simulated rover stands when a server starts: x, y (metres), heading (degrees CCW
+    # from east). Not part of the ground: the same seed builds the same world wherever it starts.
+    rover_start: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     @model_validator(mode="after")
     def _check(self) -> "WorldConfig":

@@ -7,7 +7,9 @@ SimulatedTestbed (world, rover, truth) is shared by all of them.
 """
 from __future__ import annotations
 
+import math
 from pathlib import Path
+
 from drivers.sim.clock import SimClock
 from drivers.sim.config import WorldConfig
 from drivers.sim.testbed import SimulatedTestbed
@@ -32,7 +34,10 @@ class Devices:
                  world_file: Path | None = None, testbed: SimulatedTestbed | None = None):
         self.config = config
         self.clock = clock
-        self.testbed = testbed or SimulatedTestbed(clock, world_config, world_file)
+        if testbed is None:
+            x, y, heading = (world_config or WorldConfig()).rover_start
+            testbed = SimulatedTestbed(clock, world_config, world_file, start_pose=(x, y, math.radians(heading)))
+        self.testbed = testbed
         self.items: dict[str, Device] = {
             "ptu": PtuDevice(config.ptu, clock, self.testbed),
             "tof": TofDevice(config.tof, clock, self.testbed),
