@@ -1,0 +1,244 @@
+"""Image-based routes on seeded scenes, taught once and repeated forwards and backwards, with the sun
+unchanged and moved, with both matchers, through real servers; scored against the simulator's truth.
+
+Per scene (50 m worlds, 7 % rock cover, three craters): a route of 20-50 m is laid on the true map
+(rocks over 0.10 m grown by 0.5 m avoided) from the centre toward a random goal, cut into straight
+legs of at most 2.5 m that keep 0.3 m from every rock, with a turn wherever it bends, and taught once (route-record, drive ..., route-record
+stop) by the simulated rover with its drive error. The route database then serves every repeat:
+each repeat is a fresh server on the same data directory (the routes survive the restart) whose
+rover starts near the route's start (forward) or end (reverse), 0.2 m and 5 degrees off, under the
+teaching sun or under one moved 40 degrees in azimuth and 20 degrees up, and runs
+`route-follow --name R [--reverse] --matcher M`. Scored per repeat:
+
+- success: the reply is OK and the rover truly stands within 0.5 m of the route's last place;
+- final distance: from the true end of the taught route (or its start, in reverse);
+- deviation: the largest distance of the repeat's true path from the taught true path.
+
+    .venv/bin/python tests/bench/measure_routes.py [--scenes 10] [--first-seed 501] [--jobs 2]
+    .venv/bin/python tests/bench/measure_routes.py --report [--out /tmp/rvs-routes]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import shutil
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(REPO / "tests"))
+sys.path.insert(0, str(REPO))
+from conftest import ServerProcess, pairs  # noqa: E402
+from drivers.sim.config import WorldConfig  # noqa: E402
+from drivers.sim.world import World  # noqa: E402
+from rvs_server.toolbox.grid import GridSpec  # noqa: E402
+from rvs_server.toolbox.planning import (MapLayers, PlanningParams, cells_to_world, inflate_hazards,  # noqa: E402
+                                         plan_path, segment_is_clear)
+
+SIZE_M = 50.0
+LEG_M = 2.5
+SUN = (135.0, 35.0)
+MOVED_SUN = (175.0, 55.0)        # 40 degrees in azimuth, 20 degrees higher
+START_OFFSET = (0.2, 5.0)        # metres, degrees off the route's first place
+ARRIVED_M = 0.5
+WORLD = """seed = {seed}
+size_m = [{size}, {size}]
+rover_start = [{x:.4f}, {y:.4f}, {heading:.3f}]
+[sun]
+azimuth_deg = {azimuth}
+elevation_deg = {elevation}
+"""
+
+
+def lay_route(seed: int) -> tuple[list[tuple[str, float]], float]:
+    """Actions (kind, value: metres or degrees) of a 20-50 m route from (0, 0) on the true map, and
+    the starting heading in degrees."""
+    world = World.build(WorldConfig(seed=seed, size_m=(SIZE_M, SIZE_M)))
+    half = SIZE_M / 2 - 4.0
+    spec = GridSpec.covering((-half, half), (-half, half), 0.05)
+    hazard = world.obstacle_mask(0.10, 0.05, spec.x_range, spec.y_range)[:spec.rows, :spec.cols]
+    layers = MapLayers(spec, np.zeros(spec.shape), hazard, np.zeros(spec.shape, bool))
+    params = PlanningParams(weight=1.0, rover_radius_m=0.5, hazard_margin_m=0.0)
+    # Legs as a person would teach them: chords of the shortest path, at most LEG_M long, that keep
+    # 0.3 m (the rover's half width) from every rock.
+    blocked = inflate_hazards(hazard, 0.05, 0.3).mask
+    rng = np.random.default_rng([seed, 3])
+    for _ in range(200):
+        distance, bearing = rng.uniform(17.0, half - 1.0), rng.uniform(-math.pi, math.pi)
+        goal = (distance * math.cos(bearing), distance * math.sin(bearing))
+        plan = plan_path(layers, (0.0, 0.0), goal, params)
+        if not plan.found or not 20.0 <= plan.length_m <= 50.0:
+            continue
+        points = chords(plan.cells, blocked, LEG_M / 0.05)
+        points = cells_to_world(spec, points)
+        heading = math.atan2(*(points[1] - points[0])[::-1])
+        start_heading = heading
+        actions: list[tuple[str, float]] = []
+        for a, b in zip(points[:-1], points[1:]):
+            bearing_ab = math.atan2(b[1] - a[1], b[0] - a[0])
+            turn = math.degrees((bearing_ab - heading + math.pi) % (2 * math.pi) - math.pi)
+            if abs(turn) > 3.0:
+                actions.append(("turn", round(turn, 2)))
+            heading = bearing_ab
+            actions.append(("forward", round(float(np.hypot(*(b - a))), 3)))
+        if 20.0 <= sum(v for k, v in actions if k == "forward") <= 50.0:
+            return actions, math.degrees(start_heading)
+    raise RuntimeError(f"scene {seed}: no route of 20-50 m found")
+
+
+def chords(cells: np.ndarray, blocked: np.ndarray, longest: float) -> np.ndarray:
+    """Cells of the path kept so that each chord between them is at most `longest` cells long and
+    crosses no blocked cell."""
+    kept = [0]
+    while kept[-1] < len(cells) - 1:
+        first = kept[-1]
+        best = first + 1
+        for j in range(first + 2, len(cells)):
+            if np.hypot(*(cells[j] - cells[first])) > longest:
+                break
+            if segment_is_clear(blocked, cells[first], cells[j]):
+                best = j
+        kept.append(best)
+    return cells[kept]
+
+
+def configs_for(root: Path, seed: int, pose: tuple[float, float, float], sun: tuple[float, float]) -> Path:
+    configs = root / "configs"
+    shutil.rmtree(configs, ignore_errors=True)
+    shutil.copytree(REPO / "configs", configs)
+    (configs / "world.toml").write_text(WORLD.format(seed=seed, size=SIZE_M, x=pose[0], y=pose[1],
+                                                     heading=pose[2], azimuth=sun[0], elevation=sun[1]))
+    return configs
+
+
+def teach(seed: int, out: Path) -> dict:
+    root = out / f"scene{seed}"
+    shutil.rmtree(root, ignore_errors=True)
+    actions, heading = lay_route(seed)
+    server = ServerProcess(data_dir=root / "data", config_dir=configs_for(root, seed, (0.0, 0.0, heading), SUN))
+    server.start(timeout=300)
+    try:
+        with server.connect(timeout=600) as client:
+            assert " OK " in f" {client.command('route-record start --name r', timeout=300)} "
+            for kind, value in actions:
+                reply = client.command(f"drive --{kind} {value}", timeout=300)
+                if " OK " not in f" {reply} ":
+                    raise RuntimeError(f"scene {seed}: drive --{kind} {value}: {reply}")
+            stop = pairs(client.command("route-record stop", timeout=300))
+    finally:
+        server.stop()
+    taught = json.loads((root / "data" / "products" / stop["product"] / "truth" / "path.json").read_text())["path"]
+    return {"seed": seed, "actions": actions, "legs": int(stop["triplets"]), "length_m": float(stop["length"]),
+            "bytes": int(stop["bytes"]), "bytes_per_m": float(stop["bytes_per_m"]), "taught": taught}
+
+
+def repeat(seed: int, out: Path, route: dict, matcher: str, sun_moved: bool, reverse: bool) -> dict:
+    root = out / f"scene{seed}"
+    taught = np.array(route["taught"])
+    place = taught[-1] if reverse else taught[0]
+    goal = taught[0] if reverse else taught[-1]
+    rng = np.random.default_rng([seed, int(reverse), int(sun_moved), len(matcher)])
+    angle = rng.uniform(-math.pi, math.pi)
+    pose = (place[0] + START_OFFSET[0] * math.cos(angle), place[1] + START_OFFSET[0] * math.sin(angle),
+            math.degrees(place[2]) + rng.choice([-1, 1]) * START_OFFSET[1])
+    run = root / f"{matcher}-{'moved' if sun_moved else 'same'}-{'reverse' if reverse else 'forward'}"
+    shutil.rmtree(run, ignore_errors=True)
+    server = ServerProcess(data_dir=root / "data", config_dir=configs_for(run, seed, pose, MOVED_SUN if sun_moved
+                                                                          else SUN))
+    started = time.perf_counter()
+    server.start(timeout=300)
+    try:
+        with server.connect(timeout=1800) as client:
+            reply = client.command(f"route-follow --name r {'--reverse ' if reverse else ''}--matcher {matcher} "
+                                   f"--output {run.name}", timeout=1800)
+    finally:
+        server.stop()
+    seconds = time.perf_counter() - started
+    product = root / "data" / "products" / run.name
+    path = np.array(json.loads((product / "truth" / "path.json").read_text())["path"])
+    follow = json.loads((product / "follow.json").read_text())
+    final = float(np.linalg.norm(path[-1, :2] - goal[:2]))
+    gaps = np.min(np.linalg.norm(path[:, None, :2] - taught[None, :, :2], axis=2), axis=1)
+    ok = " OK " in f" {reply} "
+    return {"seed": seed, "matcher": matcher, "sun": "moved" if sun_moved else "same",
+            "direction": "reverse" if reverse else "forward", "ok": ok, "success": bool(ok and final <= ARRIVED_M),
+            "final_m": round(final, 3), "max_deviation_m": round(float(gaps.max()), 3),
+            "length_m": route["length_m"], "legs": route["legs"], "images": follow["images"],
+            "last_matched": follow["segments"][0]["last_matched"], "seconds": round(seconds, 1),
+            "reply": reply[:200]}
+
+
+def scene(seed: int, out: Path) -> list[dict]:
+    route = teach(seed, out)
+    (out / f"scene{seed}" / "route.json").write_text(json.dumps(route))
+    print(f"scene {seed}: taught {route['length_m']:.1f} m in {route['legs']} legs, "
+          f"{route['bytes_per_m']:.0f} bytes/m", flush=True)
+    results = []
+    for matcher in ("features", "contour"):
+        for sun_moved in (False, True):
+            for reverse in (False, True):
+                result = repeat(seed, out, route, matcher, sun_moved, reverse)
+                results.append({**result, "bytes_per_m": route["bytes_per_m"]})
+                print(f"scene {seed} {matcher} sun {result['sun']} {result['direction']}: "
+                      f"{'success' if result['success'] else 'FAILED'}, final {result['final_m']:.2f} m, "
+                      f"deviation {result['max_deviation_m']:.2f} m, {result['seconds']:.0f} s", flush=True)
+    return results
+
+
+def report(results: list[dict]) -> str:
+    if not results:
+        return "no results"
+    lines = []
+    scenes = sorted({r["seed"] for r in results})
+    lengths = {r["seed"]: r["length_m"] for r in results}
+    lines.append(f"{len(scenes)} scenes, routes {min(lengths.values()):.1f}-{max(lengths.values()):.1f} m, "
+                 f"{np.mean([r['bytes_per_m'] for r in results]) / 1024:.1f} KiB stored per metre (mean)")
+    lines.append("matcher   sun    direction  success   final m (median, max)   deviation m (median, max)")
+    for matcher in ("features", "contour"):
+        for sun in ("same", "moved"):
+            for direction in ("forward", "reverse"):
+                rows = [r for r in results if (r["matcher"], r["sun"], r["direction"]) == (matcher, sun, direction)]
+                if not rows:
+                    continue
+                final = [r["final_m"] for r in rows]
+                deviation = [r["max_deviation_m"] for r in rows]
+                lines.append(f"{matcher:9s} {sun:6s} {direction:9s}  {sum(r['success'] for r in rows):2d}/{len(rows):<2d}"
+                             f"     {np.median(final):6.2f} {np.max(final):6.2f}          "
+                             f"{np.median(deviation):6.2f} {np.max(deviation):6.2f}")
+    return "\n".join(lines)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--scenes", type=int, default=10)
+    parser.add_argument("--first-seed", type=int, default=501)
+    parser.add_argument("--jobs", type=int, default=2)
+    parser.add_argument("--report", action="store_true", help="only summarise --out's results")
+    parser.add_argument("--out", type=Path, default=Path("/tmp/rvs-routes"))
+    args = parser.parse_args()
+    args.out.mkdir(parents=True, exist_ok=True)
+    log = args.out / "results.jsonl"
+    results = [json.loads(line) for line in log.read_text().splitlines()] if log.exists() else []
+    if not args.report:
+        done = {r["seed"] for r in results}
+        seeds = [s for s in range(args.first_seed, args.first_seed + args.scenes) if s not in done]
+        with ProcessPoolExecutor(max_workers=args.jobs) as pool:
+            for seed, future in [(s, pool.submit(scene, s, args.out)) for s in seeds]:
+                try:
+                    rows = future.result()
+                except Exception as exc:  # a scene that cannot run is reported, not hidden
+                    print(f"scene {seed}: ERROR {exc!r}"[:400], flush=True)
+                    continue
+                results.extend(rows)
+                with open(log, "a") as handle:
+                    handle.writelines(json.dumps(r) + "\n" for r in rows)
+    print(report(results))
+
+
+if __name__ == "__main__":
+    main()
