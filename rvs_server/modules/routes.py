@@ -16,7 +16,6 @@ image when it is stored.
 """
 from __future__ import annotations
 
-import json
 import math
 import weakref
 from dataclasses import asdict
@@ -290,8 +289,8 @@ def _finished_route(state: RoutesState, name: str, command: str) -> None:
 def route_follow(ctx: JobContext, cfg: FollowConfig) -> dict[str, Any]:
     """Repeat a route: each action stopped when the live view matches its image after."""
     matcher_name = cfg.matcher or ctx.settings.matcher
-    segment = Segment(cfg.name, *((len(state_of(ctx.server).store.triplets(cfg.name)), 0) if cfg.reverse
-                                  else (0, len(state_of(ctx.server).store.triplets(cfg.name)))))
+    last = len(state_of(ctx.server).store.triplets(cfg.name))   # the last place
+    segment = Segment(cfg.name, last, 0) if cfg.reverse else Segment(cfg.name, 0, last)
     product = ctx.product(cfg, name=cfg.output)
     run = FollowRun(ctx, matcher_name, product)
     report = run.follow(segment, 0, 1)
@@ -457,7 +456,10 @@ def route_go(ctx: JobContext, cfg: GoConfig) -> dict[str, Any]:
     ctx.progress(2, "where am I: matching the live view against every place of every route")
     start = locate(store, run, matcher_name)
     if start is None:
-        run.finish([FollowReport(False, "lost_at_start", None)], [Segment(goal[0], goal[1], goal[1])])
+        result = ctx.finish_product(product)
+        raise BadRequest(f"route-go: lost_at_start: the live view matches no place of any route; "
+                         f"product={result['product']}", data={"product": result["product"],
+                                                              "reason": "lost_at_start"})
     routes = [r.name for r in store.list_routes() if r.state == "finished" and "reversed_from" not in r.metadata]
     legs = [NetworkLeg(r, t.index, t.action.kind, t.action.value) for r in routes for t in store.triplets(r)]
     links = [NetworkLink((l.route_a, l.index_a), (l.route_b, l.index_b)) for l in store.links()]
