@@ -126,10 +126,12 @@ def chain(seed: int, out: Path, hops: int, size: float, cover: float, sim_speed:
                 launch = record["launch"]
                 hop = (f"hop --speed {launch['speed_mps']:.4f} --elevation {launch['elevation_deg']:.3f} "
                        f"--heading {launch['heading_deg']:.3f}")
+            hop_map = pairs(client.command("hop-map", timeout=600)).get("product")
             memory = peak_memory_mib(server)
     finally:
         server.stop()
-    return {"kind": "chain", "seed": seed, "heading_deg": heading, "hops": records, "peak_memory_mib": memory}
+    return {"kind": "chain", "seed": seed, "heading_deg": heading, "hops": records, "peak_memory_mib": memory,
+            "hop_map": str(products / hop_map) if hop_map else None}
 
 
 def chain_errors(run: dict) -> list[dict]:
