@@ -27,6 +27,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import re
 import shutil
 import sys
 import time
@@ -68,7 +69,12 @@ def start_server(root: Path, seed: int, size: float, cover: float, settings: str
         if old not in text:
             raise RuntimeError(f"configs/hopping.toml has no {old!r} to change")
         text = text.replace(old, new)
-    (configs / "hopping.toml").write_text(settings + text)
+    for line in settings.splitlines():      # top-level keys: replace the file's own line
+        key = line.split("=")[0].strip()
+        text, found = re.subn(rf"^{re.escape(key)}\s*=.*$", line, text, count=1, flags=re.MULTILINE)
+        if not found:
+            text = line + "\n" + text
+    (configs / "hopping.toml").write_text(text)
     return ServerProcess(data_dir=root / "data", config_dir=configs).start(timeout=300)
 
 
