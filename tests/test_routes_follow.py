@@ -118,6 +118,29 @@ def test_backward_legs_use_the_same_scale_rule():
     assert report.success and abs(rover.x) < 0.13
 
 
+def test_backing_up_turns_away_the_far_points_shift_only():
+    """A shift made of heading error plus the parallax of a sideways offset: driving forward the whole
+    shift is turned away (it steers back onto the path), backing up only the far points' (the heading)."""
+
+    class ParallaxMatcher(PositionMatcher):
+        def match(self, live, stored):
+            result = super().match(live, stored)
+            if not result.same_place:
+                return result
+            heading = FOCAL * math.tan(live[1] - stored[1])
+            return MatchResult(True, result.similarity, shift_px=(heading + 30.0, 0.0), scale=result.scale,
+                               support=50, far_shift_px=(heading, 0.0))
+
+    legs, _ = line_route(("forward", 2.0))
+    back = [Leg(leg.after, "backward", leg.value, leg.before) for leg in reversed(legs)]
+    rover = LineRover(x=2.0)
+    assert RouteFollower(back, ParallaxMatcher(), rover).run().success
+    assert not [a for a in rover.actions if a[0] == "turn"]          # heading right: nothing to turn
+    rover = LineRover()
+    RouteFollower(legs, ParallaxMatcher(), rover).run()
+    assert rover.actions[0][0] == "turn"                              # forward: the whole shift steers
+
+
 def test_params_are_checked():
     with pytest.raises(ValueError, match="blind_fraction"):
         FollowParams(blind_fraction=1.5)

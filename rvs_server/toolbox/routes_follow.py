@@ -146,22 +146,28 @@ class RouteFollower:
     def follow_leg(self, index: int, leg: Leg) -> LegReport:
         report = LegReport(index, leg.kind, leg.value, False, 0.0)
         if leg.kind == "turn":
+            backing = self.backing_from(index + 1)   # corrected as the drive after it will be made
             self.rover.act("turn", leg.value)
-            result = self.settle(leg.after, report)
-            result = self.scan(leg.after, result, report)
+            result = self.settle(leg.after, report, backing)
+            result = self.scan(leg.after, result, report, backing)
         else:
             result = self.approach(leg, report)
         report.matched, report.similarity = bool(result.same_place), float(result.similarity)
         return report
 
     # ---------------------------------------------------------------------------------- steps
-    def settle(self, target: Any, report: LegReport | None = None) -> MatchResult:
-        """The live view against a target, turning away the heading error the match shows."""
+    def settle(self, target: Any, report: LegReport | None = None, backing: bool = False) -> MatchResult:
+        """The live view against a target, turning away the heading error the match shows.
+
+        The whole shift (heading and the parallax of a sideways offset) steers a rover that drives
+        forward back onto the path, as in teach and repeat; backing up, the same turn would steer it
+        away, so then only the far points' shift, the heading alone, is turned away."""
         result = self.matcher.match(self.rover.look(), target)
         for _ in range(self.params.max_heading_corrections):
-            if not result.same_place or result.shift_px is None:
+            shift = result.far_shift_px if backing and result.far_shift_px is not None else result.shift_px
+            if not result.same_place or shift is None:
                 break
-            error = heading_offset(result.shift_px[0], self.rover.focal_px)
+            error = heading_offset(shift[0], self.rover.focal_px)
             if abs(math.degrees(error)) <= self.params.heading_tolerance_deg:
                 break
             self.rover.act("turn", -error)
@@ -170,7 +176,7 @@ class RouteFollower:
             result = self.matcher.match(self.rover.look(), target)
         return result
 
-    def scan(self, target: Any, result: MatchResult, report: LegReport) -> MatchResult:
+    def scan(self, target: Any, result: MatchResult, report: LegReport, backing: bool = False) -> MatchResult:
         """Not seen after a turn: look left and right in growing steps (a turn made from a place a
         little off, or with a slipping wheel, ends a few degrees away), back where it was if not."""
         if result.same_place:
@@ -179,7 +185,7 @@ class RouteFollower:
         for offset in self.params.scan_deg:
             self.rover.act("turn", math.radians(offset - at))
             at = offset
-            result = self.settle(target, report)
+            result = self.settle(target, report, backing)
             if result.same_place:
                 return result
         self.rover.act("turn", math.radians(-at))
@@ -189,14 +195,15 @@ class RouteFollower:
         """Drive the leg: blind for most of it, then until the image after is matched at its scale."""
         p = self.params
         sign = 1.0 if leg.kind == "forward" else -1.0      # along the body's x axis
-        self.settle(leg.before, report)
+        backing = sign < 0
+        self.settle(leg.before, report, backing)
         blind = p.blind_fraction * leg.value
         self.drive(sign * blind, report)
         along = blind                                       # along the leg's own direction
         search_step = max(p.min_step_m, p.search_step_fraction * leg.value)
         fine_steps = 0
         while True:
-            result = self.settle(leg.after, report)
+            result = self.settle(leg.after, report, backing)
             if result.same_place:
                 if result.scale is None:                    # a matcher without scale: seen is arrived
                     return result
@@ -222,6 +229,10 @@ class RouteFollower:
         self.rover.act("forward" if metres > 0 else "backward", abs(metres))
         report.travelled_m += abs(metres)
 
+    def backing_from(self, index: int) -> bool:
+        """Is the next drive from leg `index` on a backward one?"""
+        return next((leg.kind == "backward" for leg in self.legs[index:] if leg.kind != "turn"), False)
+
     def find_place(self, expected: int, first: int, last: int) -> int | None:
         """The place among first..last the live view matches (settling the heading on it), nearest
         the expected one on a tie; None if none."""
@@ -232,5 +243,5 @@ class RouteFollower:
         if not matched:
             return None
         best = max(matched, key=lambda i: (results[i].similarity, -abs(i - expected)))
-        self.settle(self.places[best])
+        self.settle(self.places[best], backing=self.backing_from(best))
         return best

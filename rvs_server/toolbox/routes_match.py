@@ -68,6 +68,9 @@ class MatchResult:
         farther (move forward); None where unknown.
     support: how many pieces of evidence the decision rests on (similar contour points, RANSAC
         inlier matches).
+    far_shift_px: (du, dv) of the farthest matched points only (the top of a ground view): nearly
+        free of the parallax a sideways offset adds, so it is the heading error alone; None where
+        the matcher cannot tell.
     """
 
     same_place: bool
@@ -76,6 +79,7 @@ class MatchResult:
     rotation_rad: float | None = None
     scale: float | None = None
     support: int = 0
+    far_shift_px: tuple[float, float] | None = None
 
 
 @runtime_checkable
@@ -560,16 +564,29 @@ class FeatureMatcher:
         # Similarity: the inliers' share of the smaller keypoint set, so it is comparable across images.
         similarity = min(1.0, count / max(1, min(len(desc_live), len(desc_stored))))
         shift, rotation, scale = _image_motion(stored[inliers], live[inliers])
+        far_shift = _far_shift(stored[inliers], live[inliers])
         same = (count >= c.min_inliers and count >= c.min_inlier_ratio * len(pairs)
                 and scale is not None and c.scale_range[0] <= scale <= c.scale_range[1])
         return MatchResult(bool(same), similarity, shift_px=shift, rotation_rad=rotation, scale=scale,
-                           support=count)
+                           support=count, far_shift_px=far_shift)
 
     def to_bytes(self, descriptor: FeatureDescriptor) -> bytes:
         return _pack_arrays(self.name, _descriptor_arrays(descriptor))
 
     def from_bytes(self, data: bytes) -> FeatureDescriptor:
         return FeatureDescriptor(**_unpack_arrays(data, self.name))
+
+
+def _far_shift(stored: np.ndarray, live: np.ndarray, share: float = 0.3, least: int = 5):
+    """Median displacement of the highest `share` of the matched points in the image (the farthest
+    ground in a forward view), or None if fewer than `least` of them."""
+    if len(stored) < least:
+        return None
+    far = stored[:, 1] <= np.quantile(stored[:, 1], share)
+    if far.sum() < least:
+        return None
+    du, dv = np.median(live[far] - stored[far], axis=0)
+    return float(du), float(dv)
 
 
 def _image_motion(stored: np.ndarray, live: np.ndarray):
