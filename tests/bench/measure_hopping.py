@@ -112,11 +112,11 @@ def hop_and_plan(client, products: Path, hop: str, plan: str) -> dict:
 
 
 # ------------------------------------------------------------------------------------ chains
-def chain(seed: int, out: Path, hops: int, size: float, cover: float, sim_speed: float) -> dict:
+def chain(seed: int, out: Path, hops: int, size: float, cover: float, sim_speed: float, octave: int | None) -> dict:
     import conftest
     conftest.SIM_SPEED = sim_speed
     root = out / f"chain{seed}"
-    server = start_server(root, seed, size, cover)
+    server = start_server(root, seed, size, cover, f"sfm_first_octave = {octave}\n" if octave is not None else "")
     products = root / "data" / "products"
     heading = float(np.random.default_rng([seed, 1]).uniform(-180, 180))
     records = []
@@ -289,7 +289,7 @@ def main() -> None:
     parser.add_argument("--cover", type=float, default=0.07)
     parser.add_argument("--spin", type=float, default=20.0, help="singles: spin, deg/s one sigma per axis")
     parser.add_argument("--octave", type=int, choices=[-1, 0], default=None,
-                        help="singles: hopping.toml sfm_first_octave (0 is about 3x faster on long hops' many frames)")
+                        help="hopping.toml sfm_first_octave for every server (0 is about 3x faster)")
     parser.add_argument("--sim-speed", type=float, default=100.0)
     parser.add_argument("--out", type=Path, default=Path("/tmp/rvs-hopping"))
     args = parser.parse_args()
@@ -300,7 +300,7 @@ def main() -> None:
     log = args.out / "results.jsonl"
     if args.what == "chains":
         first = args.first_seed or 301
-        tasks = [(chain, (seed, args.out, args.chain_hops, args.size, args.cover, args.sim_speed))
+        tasks = [(chain, (seed, args.out, args.chain_hops, args.size, args.cover, args.sim_speed, args.octave))
                  for seed in range(first, first + args.scenes)]
     else:
         first = args.first_seed or 401
