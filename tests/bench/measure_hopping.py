@@ -91,16 +91,17 @@ def hop_and_plan(client, products: Path, hop: str, plan: str) -> dict:
     if " OK " not in f" {reply} ":
         raise RuntimeError(f"{hop}: {reply}")
     hop_name = pairs(reply)["product"]
+    truth = json.loads((products / hop_name / "truth" / "hop.json").read_text())["truth"]
     started = time.perf_counter()
     reply = client.command(plan, timeout=1800)
     seconds = time.perf_counter() - started
     fields = pairs(reply)
     name = fields.get("product") or reply.split("product=")[-1].split()[0].rstrip(";")
     folder = products / name
-    if not (folder / "estimate.json").exists():
-        raise RuntimeError(f"{plan}: {reply}")
+    if not (folder / "estimate.json").exists():   # not reconstructed: the hop's truth is still known
+        return {"hop": hop_name, "plan": name, "reply": reply[:300], "truth": truth, "plan_error": reply[:300],
+                "seconds": seconds, "frames": truth["flight"]["frames"]}
     estimate = json.loads((folder / "estimate.json").read_text())
-    truth = json.loads((products / hop_name / "truth" / "hop.json").read_text())["truth"]
     comparison = json.loads((folder / "truth" / "comparison.json").read_text())
     frames = json.loads((products / hop_name / "hop.json").read_text())
     return {"hop": hop_name, "plan": name, "reply": reply[:300], "ok": " OK " in f" {reply} ", "seconds": seconds,
@@ -125,6 +126,8 @@ def chain(seed: int, out: Path, hops: int, size: float, cover: float, sim_speed:
             hop = f"hop --speed {speed_for(1.0, 60):.4f} --elevation 60 --heading {heading:.2f}"
             for number in range(1, hops + 1):
                 record = hop_and_plan(client, products, hop, f"hop-plan --goal-heading {heading:.2f}")
+                if "plan_error" in record:
+                    raise RuntimeError(f"chain {seed} hop {number}: {record['plan_error']}")
                 records.append(record)
                 print(f"chain {seed} hop {number}: {record['plan']} {record['seconds']:.0f} s", flush=True)
                 if record["launch"] is None:
@@ -188,14 +191,12 @@ def singles(seed: int, out: Path, count: int, size: float, cover: float, sim_spe
                 heading = toward + rng.uniform(-60, 60) if toward is not None else rng.uniform(-180, 180)
                 heading = (heading + 180) % 360 - 180
                 hop = f"hop --speed {speed_for(distance, elevation):.4f} --elevation {elevation:.2f} --heading {heading:.2f}"
-                try:
-                    record = hop_and_plan(client, products, hop, "hop-plan")
-                except RuntimeError as exc:
-                    record = {"error": str(exc)[:300], "commanded_m": distance}
-                    print(f"singles {seed} hop {number + 1}: {record['error']}", flush=True)
+                record = hop_and_plan(client, products, hop, "hop-plan")
+                record["commanded_m"] = distance
+                if "plan_error" in record:
+                    print(f"singles {seed} hop {number + 1}: {record['plan_error']}", flush=True)
                     records.append(record)
                     continue
-                record["commanded_m"] = distance
                 records.append(record)
                 print(f"singles {seed} hop {number + 1}: {distance:.1f} m, {record['frames']} frames, "
                       f"{record['seconds']:.0f} s", flush=True)
@@ -208,8 +209,8 @@ def singles(seed: int, out: Path, count: int, size: float, cover: float, sim_spe
 def single_errors(run: dict) -> list[dict]:
     rows = []
     for record in run["hops"]:
-        if "error" in record:
-            rows.append({"error": record["error"], "commanded_m": record["commanded_m"]})
+        if "plan_error" in record:
+            rows.append({"error": record["plan_error"], "commanded_m": record["commanded_m"]})
             continue
         truth = record["truth"]
         true = np.array(truth["landing"]["centre_m"][:2]) - np.array(truth["launch"]["centre_m"][:2])
