@@ -33,7 +33,7 @@ from ..config import CommandConfig, Point, SafeName
 from ..jobs import JobContext
 from ..mapping_ops import operations
 from ..products import ProductPart
-from ..protocol import BadRequest, Timeout
+from ..protocol import BadRequest
 from ..rasters import read_geotiff
 from ..toolbox.geometry import RoverPose
 from ..toolbox.localisation import merge_clouds
@@ -44,7 +44,7 @@ from ..workflow import WorkflowError, resolve_params, run_workflow
 from .mapping import MappingSettings, NavigateArgs, check_workflow, write_maps
 from .navigate_pictures import write_traverse
 from .navigation import (NavigationSettings, check_reach, handout_border, module, planning_layers, planning_params, under_rover,
-                         write_plan)
+                         wait_for_pose, write_plan)
 
 SENSOR_DEVICE = {"tof": "tof", "stereo": "cameras"}
 MAP_CLOUD_VOXEL_M = 0.05
@@ -324,13 +324,8 @@ class Navigation:
                                       "goal": f"{self.goal[0]:.3f},{self.goal[1]:.3f}"})
         self.progress(f"cycle {state.cycle}: waiting for the GNC to drive {len(state.to_drive)} waypoints and "
                       f"send pose X,Y,HEADING")
-        waited = 0.0
-        while self.server.pose_reports == reports:
-            if waited >= self.settings.pose_timeout_s:
-                raise Timeout(f"navigate: no pose from the GNC within {self.settings.pose_timeout_s:.0f} s of "
-                              f"handing out cycle {state.cycle}'s waypoints")
-            self.ctx.sleep(0.5)
-            waited += 0.5
+        wait_for_pose(self.ctx, reports, self.settings.pose_timeout_s,
+                      f"navigate handing out cycle {state.cycle}'s waypoints")
         pose = self.server.pose_estimate
         state.pose = [pose.x, pose.y, pose.z, pose.heading, pose.roll, pose.pitch]
         state.odometry = [pose.x, pose.y, pose.heading]

@@ -21,7 +21,7 @@ from scipy.ndimage import binary_fill_holes
 from ..config import CommandConfig, Point, Range, SafeName, Settings
 from ..dispatch import Call, Module
 from ..jobs import JobContext
-from ..protocol import BadRequest, WrongMode
+from ..protocol import BadRequest, Timeout, WrongMode
 from ..rasters import read_geotiff, write_geotiff, write_png
 from ..toolbox.colour import colourise, with_colour_bar, with_title
 from ..toolbox.geometry import RoverPose
@@ -137,6 +137,17 @@ def planning_params(settings: NavigationSettings, weight: float | None) -> Plann
                           unknown_policy=settings.unknown_policy, unknown_cost=settings.unknown_cost,
                           max_deviation_m=settings.max_deviation_m, proximity_falloff_m=settings.proximity_falloff_m,
                           proximity_cost=settings.proximity_cost)
+
+
+def wait_for_pose(ctx: Any, reports: int, timeout_s: float, after: str) -> None:
+    """Wait (in simulated time; `break` ends it) until the GNC sends `pose` after the server's
+    pose_reports count was `reports`; Timeout after timeout_s, naming what it waited `after`."""
+    waited = 0.0
+    while ctx.server.pose_reports == reports:
+        if waited >= timeout_s:
+            raise Timeout(f"no pose from the GNC within {timeout_s:.0f} s of {after}")
+        ctx.sleep(0.5)
+        waited += 0.5
 
 
 def check_reach(server: Any, start: tuple[float, float] | None, goal: tuple[float, float]) -> None:

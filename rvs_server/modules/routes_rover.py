@@ -23,9 +23,10 @@ from drivers.sim.motion import dead_reckon
 
 from ..jobs import JobContext
 from ..mapping_ops import point_ptu, stereo_intrinsics
-from ..protocol import BadRequest, DeviceError, Timeout
+from ..protocol import BadRequest, DeviceError
 from ..toolbox.geometry import RoverPose
 from ..toolbox.routes_match import PlaceMatcher, grey_image
+from .navigation import wait_for_pose
 
 FORWARD_CAMERA_MISSING = ("routes: camera \"forward\" is the simulated rover's body-fixed camera and the devices are "
                           "real; set camera = \"left\" (routes.toml) to use the left stereo camera")
@@ -100,13 +101,7 @@ class RouteRover:
         shown = math.degrees(value) if kind == "turn" else value
         self.ctx.publish("navigate", {"job": self.ctx.job.id, "action": kind, "value": f"{shown:.4f}",
                                       "unit": "deg" if kind == "turn" else "m"})
-        waited = 0.0
-        while self.server.pose_reports == reports:
-            if waited >= self.settings.pose_timeout_s:
-                raise Timeout(f"routes: no pose from the GNC within {self.settings.pose_timeout_s:.0f} s of the "
-                              f"action {kind} {shown:g}")
-            self.ctx.sleep(0.5)
-            waited += 0.5
+        wait_for_pose(self.ctx, reports, self.settings.pose_timeout_s, f"the route action {kind} {shown:g}")
 
 
 def forward_camera(server: Any, settings: Any) -> ForwardCamera:
