@@ -43,8 +43,8 @@ from ..toolbox.planning_paths import path_length
 from ..workflow import WorkflowError, resolve_params, run_workflow
 from .mapping import MappingSettings, NavigateArgs, check_workflow, write_maps
 from .navigate_pictures import write_traverse
-from .navigation import (NavigationSettings, check_reach, handout_border, module, planning_layers, planning_params, under_rover,
-                         wait_for_pose, write_plan)
+from .navigation import (NavigationSettings, check_reach, handout_border, holes_as_hazards, module, planning_layers,
+                         planning_params, under_rover, wait_for_pose, write_plan)
 
 SENSOR_DEVICE = {"tof": "tof", "stereo": "cameras"}
 MAP_CLOUD_VOXEL_M = 0.05
@@ -258,7 +258,7 @@ class Navigation:
     def fused_map(self) -> tuple[MapLayers, MapLayers]:
         """Every cycle's map over a blank global map spanning rover and goal, each cell as seen from
         the nearest place the rover mapped from (a close look corrects a far one); the rover's own
-        footprint is safe ground. Also the newest map."""
+        footprint is safe ground, and holes no look filled are hazards. Also the newest map."""
         rover = self.state.rover
         maps = [planning_layers(self.product.path / f"cycle-{c['cycle']:02d}", self.settings, rover)
                 for c in self.state.cycles]
@@ -270,7 +270,7 @@ class Navigation:
         cost = np.where(under, np.where(np.isfinite(fused.cost), fused.cost, 0.0), fused.cost)
         fused = MapLayers(fused.spec, np.where(under & fused.hazard, 0.0, cost), fused.hazard & ~under,
                           fused.unknown & ~under)
-        return fused, maps[-1]
+        return holes_as_hazards(fused, RoverPose(*self.state.cycles[0]["pose_corrected"]), self.settings), maps[-1]
 
     def _map_cloud_path(self, cycle: int):
         if cycle < 1:

@@ -28,7 +28,7 @@ from ..toolbox.geometry import RoverPose
 from ..toolbox.grid import GridSpec
 from ..toolbox.hazard import HAZARD, UNKNOWN
 from ..toolbox.planning import (MapLayers, PlanningParams, blank_map_spanning, cells_to_world, distance_to_border,
-                                drivable_prefix, fuse_maps, plan_path, terrain_cost)
+                                drivable_prefix, enclosed_unknown, fuse_maps, plan_path, terrain_cost, with_hazards)
 from .grid_canvas import Canvas
 
 
@@ -65,6 +65,10 @@ class NavigationSettings(Settings):
                                 "height: below the rover's limit by the sensors' height error")
     blind_radius_m: float = Field(1.0, ge=0, description="ground this close to the rover counts as seen when "
                                   "the part of the path to hand out is cut (the rover stands on it)")
+    holes: Literal["hazard", "unknown"] = Field("hazard", description="unknown cells walled in by known ground "
+                                                "(nothing came back from a place the sensor looked at): hazard, "
+                                                "or unknown like the unexplored outside")
+    min_hole_m2: float = Field(0.01, ge=0, description="smaller holes stay unknown")
     sticky_range_m: float = Field(2.5, ge=0, description="a hazard any cycle saw from this close stays, "
                                   "whatever a nearer look says")
     confirm_range_m: float = Field(3.0, gt=0, description="a goal seen blocked from farther than this is "
@@ -131,6 +135,16 @@ def handout_border(layers: MapLayers, pose: RoverPose, settings: NavigationSetti
     return distance_to_border(binary_fill_holes(seen), layers.spec.cell)
 
 
+def holes_as_hazards(layers: MapLayers, start: RoverPose, settings: NavigationSettings) -> MapLayers:
+    """The map with its holes made hazards (navigation.toml holes), except the blind ring round
+    where the rover started mapping: only that one no look could have seen."""
+    if settings.holes == "unknown":
+        return layers
+    min_cells = max(1, math.ceil(settings.min_hole_m2 / layers.spec.cell ** 2))
+    exempt = under_rover(layers.spec, start, settings.rover_radius_m)
+    return with_hazards(layers, enclosed_unknown(layers, min_cells, exempt))
+
+
 def planning_params(settings: NavigationSettings, weight: float | None) -> PlanningParams:
     return PlanningParams(weight=settings.weight if weight is None else weight,
                           rover_radius_m=settings.rover_radius_m, hazard_margin_m=settings.hazard_margin_m,
@@ -179,6 +193,7 @@ def plan_path_command(ctx: JobContext, cfg: PlanPathConfig) -> dict[str, Any]:
     local, source, extra = local_map(server, cfg.sensor)
     fused = fuse_maps(blank_map_spanning(start, cfg.to, settings.global_cell_m, settings.global_margin_m, [local]),
                       [local])
+    fused = holes_as_hazards(fused, pose, settings)
     params = planning_params(settings, cfg.weight)
     ctx.progress(30, "planning")
     plan = plan_path(fused, start, cfg.to, params)

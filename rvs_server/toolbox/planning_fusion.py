@@ -18,6 +18,7 @@ from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
+from scipy.ndimage import binary_dilation, binary_fill_holes, label
 
 from .grid import GridSpec
 
@@ -155,3 +156,29 @@ def fuse_nearest(global_map: MapLayers, local_maps: Sequence[MapLayers],
     hazard |= close_hazard
     unknown &= ~close_hazard
     return MapLayers(spec, np.where(hazard | unknown, np.nan, cost), hazard, unknown)
+
+
+def enclosed_unknown(layers: MapLayers, min_cells: int = 1, exempt: np.ndarray | None = None) -> np.ndarray:
+    """Unknown cells walled in by known ground: the holes of a map, as opposed to its unexplored
+    outside. Components smaller than min_cells (a dropped pixel or two) and those touching `exempt`
+    (the blind ring round where the rover started, which no look of its own could see) are left out.
+
+    A hole in ground the sensor looked at is where it got nothing back: a rock's shadow, or a rock
+    the stereo pair could not match (a dark, shadowed face). Seen from all sides and still empty,
+    such a hole is a rock far more often than free ground, so the caller can treat it as one."""
+    known = ~layers.unknown
+    holes = binary_fill_holes(known) & layers.unknown
+    labels, count = label(holes, structure=np.ones((3, 3), bool))
+    if count == 0:
+        return holes
+    sizes = np.bincount(labels.ravel(), minlength=count + 1)
+    drop = sizes < min_cells
+    if exempt is not None:
+        drop[np.unique(labels[binary_dilation(exempt, structure=np.ones((3, 3), bool))])] = True
+    drop[0] = True
+    return ~drop[labels]
+
+
+def with_hazards(layers: MapLayers, mask: np.ndarray) -> MapLayers:
+    """The map with the cells of mask made hazards."""
+    return MapLayers(layers.spec, np.where(mask, np.inf, layers.cost), layers.hazard | mask, layers.unknown & ~mask)

@@ -187,12 +187,15 @@ def main() -> None:
     parser.add_argument("--sensors", nargs="+", default=["tof", "stereo"])
     parser.add_argument("--size", type=float, default=34.0)
     parser.add_argument("--sim-speed", type=float, default=100.0)
+    parser.add_argument("--only", type=int, nargs="+", help="run only these seeds of the campaign (a quick check)")
     parser.add_argument("--out", type=Path, default=Path("/tmp/rvs-navigation"))
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
     log = args.out / "results.jsonl"
     done = {(r["seed"], r["sensor"]): r for r in map(json.loads, log.read_text().splitlines())} if log.exists() else {}
     seeds, boxed_in = usable_seeds(args.first_seed, args.scenes, args.size)
+    if args.only:
+        seeds = [seed for seed in seeds if seed in args.only]
     print(f"{len(seeds)} scenes: seeds {seeds[0]}-{seeds[-1]}; {len(boxed_in)} seeds skipped because the rover is "
           f"boxed in at the start on the true map: {boxed_in}", flush=True)
     tasks = [(seed, sensor) for seed in seeds for sensor in args.sensors if (seed, sensor) not in done]
