@@ -525,3 +525,32 @@ def test_fuse_nearest_takes_the_closest_look_but_keeps_close_hazards():
     fused = fuse_nearest(blank, maps, [(1.0, 0.5), (2.1, 0.5)], sticky_range_m=1.5)
     assert fused.hazard[:, 20].all()
     assert not fuse_nearest(blank, maps, [(1.0, 0.5), (2.1, 0.5)]).hazard.any()
+
+
+def test_holes_walled_in_by_seen_ground_become_hazards_but_not_the_outside_the_specks_or_the_start():
+    from rvs_server.toolbox.planning import enclosed_unknown, with_hazards
+    spec = GridSpec(0.0, 0.0, 0.1, 30, 30)
+    unknown = np.zeros(spec.shape, bool)
+    unknown[:, 25:] = True                               # the unexplored outside, open to the border
+    unknown[10:14, 10:14] = True                         # a 0.4 m hole: a rock the sensor got nothing from
+    unknown[20, 5] = True                                # a dropped pixel
+    unknown[3:6, 3:6] = True                             # the blind ring round the start ...
+    unknown[4, 4] = False                                # ... round the rover's known footprint
+    unknown[5:7, 6] = True                               # a rock's hole reaching into that ring
+    start = np.zeros(spec.shape, bool)
+    start[3:6, 3:6] = True                               # the sensor's blind disc round the start
+    layers = MapLayers(spec, np.where(unknown, np.nan, 0.0), np.zeros(spec.shape, bool), unknown)
+    holes = enclosed_unknown(layers, min_cells=2, exempt=start)
+    expected = np.zeros(spec.shape, bool)
+    expected[10:14, 10:14] = True
+    expected[5:7, 6] = True                              # the part of the rock's hole outside the disc
+    assert (holes == expected).all()
+    assert enclosed_unknown(layers, min_cells=2)[3:6, 3:6].sum() == 8   # not exempt: the ring is a hole too
+    assert enclosed_unknown(layers, min_cells=1, exempt=start)[20, 5]
+    # Planned through, the hole was the short way; made a hazard, the path goes round it.
+    params = PlanningParams(rover_radius_m=0.1, hazard_margin_m=0.0, unknown_policy="penalize", unknown_cost=0.05)
+    through = plan_path(layers, (0.55, 1.25), (2.05, 1.25), params)
+    assert through.found and np.any(holes[through.cells[:, 0], through.cells[:, 1]])
+    around = plan_path(with_hazards(layers, holes), (0.55, 1.25), (2.05, 1.25), params)
+    assert around.found and not np.any(holes[around.cells[:, 0], around.cells[:, 1]])
+    assert around.length_m > through.length_m

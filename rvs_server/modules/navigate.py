@@ -231,7 +231,7 @@ class Navigation:
         if plan.found:
             state.route, state.route_aim = plan.waypoints.tolist(), list(aim)
         # What is handed out stays inside what the cycles have mapped, a margin from its border.
-        border = handout_border(fused, state.rover, self.settings)
+        border = handout_border(fused, state.rover, self.settings.blind_radius_m.of(self.cfg.sensor))
         drivable = drivable_prefix(plan.waypoints, fused.spec, border, self.settings.border_margin_m) if plan.found else None
         part = ProductPart(self.product, f"cycle-{cycle:02d}")
         ortho_path = self.product.path / f"cycle-{cycle:02d}" / "ortho.tif"
@@ -270,7 +270,8 @@ class Navigation:
         cost = np.where(under, np.where(np.isfinite(fused.cost), fused.cost, 0.0), fused.cost)
         fused = MapLayers(fused.spec, np.where(under & fused.hazard, 0.0, cost), fused.hazard & ~under,
                           fused.unknown & ~under)
-        return holes_as_hazards(fused, RoverPose(*self.state.cycles[0]["pose_corrected"]), self.settings), maps[-1]
+        start = RoverPose(*self.state.cycles[0]["pose_corrected"])
+        return holes_as_hazards(fused, start, self.cfg.sensor, self.settings), maps[-1]
 
     def _map_cloud_path(self, cycle: int):
         if cycle < 1:

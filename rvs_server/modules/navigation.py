@@ -15,7 +15,7 @@ from typing import Any, Literal
 
 import cv2
 import numpy as np
-from pydantic import Field
+from pydantic import BaseModel, ConfigDict, Field
 from scipy.ndimage import binary_fill_holes
 
 from ..config import CommandConfig, Point, Range, SafeName, Settings
@@ -30,6 +30,17 @@ from ..toolbox.hazard import HAZARD, UNKNOWN
 from ..toolbox.planning import (MapLayers, PlanningParams, blank_map_spanning, cells_to_world, distance_to_border,
                                 drivable_prefix, enclosed_unknown, fuse_maps, plan_path, terrain_cost, with_hazards)
 from .grid_canvas import Canvas
+
+
+class PerSensor(BaseModel):
+    """A length for each mapping sensor, metres."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    tof: float = Field(..., ge=0)
+    stereo: float = Field(..., ge=0)
+
+    def of(self, sensor: str) -> float:
+        return getattr(self, sensor)
 
 
 class NavigationSettings(Settings):
@@ -63,8 +74,9 @@ class NavigationSettings(Settings):
     turn_rate_deg_s: float = Field(20.0, gt=0, description="simulated rover turn rate")
     step_limit_m: float = Field(0.09, gt=0, description="navigate's maps call a step hazardous from this "
                                 "height: below the rover's limit by the sensors' height error")
-    blind_radius_m: float = Field(1.0, ge=0, description="ground this close to the rover counts as seen when "
-                                  "the part of the path to hand out is cut (the rover stands on it)")
+    blind_radius_m: PerSensor = Field(
+        PerSensor(tof=0.9, stereo=1.7), description="per sensor, the ring round the mast it cannot see: counts as seen "
+        "when the part of the path to hand out is cut, and is no hole where the rover started")
     holes: Literal["hazard", "unknown"] = Field("hazard", description="unknown cells walled in by known ground "
                                                 "(nothing came back from a place the sensor looked at): hazard, "
                                                 "or unknown like the unexplored outside")
@@ -127,21 +139,21 @@ def under_rover(spec: GridSpec, pose: RoverPose, radius: float) -> np.ndarray:
     return np.hypot(xs[None, :] - pose.x, ys[:, None] - pose.y) <= radius
 
 
-def handout_border(layers: MapLayers, pose: RoverPose, settings: NavigationSettings) -> np.ndarray:
+def handout_border(layers: MapLayers, pose: RoverPose, blind_radius_m: float) -> np.ndarray:
     """Distance to the border of what is mapped, which limits the part of a path handed out. Holes
-    inside the map (shadows behind rocks) do not cut the path, nor does the ground the rover stands
-    on and beside it (blind_radius_m: the mast's own blind ring)."""
-    seen = ~layers.unknown | under_rover(layers.spec, pose, settings.blind_radius_m)
+    inside the map do not cut the path (the planner has made them hazards or costed them), nor does
+    the ground the rover stands on and beside it (the sensor's own blind ring)."""
+    seen = ~layers.unknown | under_rover(layers.spec, pose, blind_radius_m)
     return distance_to_border(binary_fill_holes(seen), layers.spec.cell)
 
 
-def holes_as_hazards(layers: MapLayers, start: RoverPose, settings: NavigationSettings) -> MapLayers:
-    """The map with its holes made hazards (navigation.toml holes), except the blind ring round
-    where the rover started mapping: only that one no look could have seen."""
+def holes_as_hazards(layers: MapLayers, start: RoverPose, sensor: str, settings: NavigationSettings) -> MapLayers:
+    """The map with its holes made hazards (navigation.toml holes), except within the sensor's
+    blind ring round where the rover started mapping: no look could have seen that."""
     if settings.holes == "unknown":
         return layers
     min_cells = max(1, math.ceil(settings.min_hole_m2 / layers.spec.cell ** 2))
-    exempt = under_rover(layers.spec, start, settings.rover_radius_m)
+    exempt = under_rover(layers.spec, start, settings.blind_radius_m.of(sensor))
     return with_hazards(layers, enclosed_unknown(layers, min_cells, exempt))
 
 
@@ -193,14 +205,14 @@ def plan_path_command(ctx: JobContext, cfg: PlanPathConfig) -> dict[str, Any]:
     local, source, extra = local_map(server, cfg.sensor)
     fused = fuse_maps(blank_map_spanning(start, cfg.to, settings.global_cell_m, settings.global_margin_m, [local]),
                       [local])
-    fused = holes_as_hazards(fused, pose, settings)
+    fused = holes_as_hazards(fused, pose, cfg.sensor, settings)
     params = planning_params(settings, cfg.weight)
     ctx.progress(30, "planning")
     plan = plan_path(fused, start, cfg.to, params)
     product = ctx.product(cfg, name=cfg.output)
     product.note("inputs", [{"map": source.name, "path": str(source.path)}])
     # On the fused grid: the local map's own grid may not even reach the rover.
-    border = handout_border(fused, pose, settings)
+    border = handout_border(fused, pose, settings.blind_radius_m.of(cfg.sensor))
     drivable = drivable_prefix(plan.waypoints, fused.spec, border, settings.border_margin_m) if plan.found else None
     ctx.progress(70, "writing")
     write_plan(product, fused, plan, drivable, local, extra["ortho"], start, cfg.to)

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
-from scipy.ndimage import binary_dilation, binary_fill_holes, label
+from scipy.ndimage import binary_fill_holes, label
 
 from .grid import GridSpec
 
@@ -160,21 +160,21 @@ def fuse_nearest(global_map: MapLayers, local_maps: Sequence[MapLayers],
 
 def enclosed_unknown(layers: MapLayers, min_cells: int = 1, exempt: np.ndarray | None = None) -> np.ndarray:
     """Unknown cells walled in by known ground: the holes of a map, as opposed to its unexplored
-    outside. Components smaller than min_cells (a dropped pixel or two) and those touching `exempt`
-    (the blind ring round where the rover started, which no look of its own could see) are left out.
+    outside. Cells in `exempt` (the blind ring round where the rover started, which no look of its
+    own could see) are never holes, and components smaller than min_cells (a dropped pixel or two)
+    are left out.
 
     A hole in ground the sensor looked at is where it got nothing back: a rock's shadow, or a rock
     the stereo pair could not match (a dark, shadowed face). Seen from all sides and still empty,
     such a hole is a rock far more often than free ground, so the caller can treat it as one."""
     known = ~layers.unknown
     holes = binary_fill_holes(known) & layers.unknown
+    if exempt is not None:
+        holes &= ~exempt
     labels, count = label(holes, structure=np.ones((3, 3), bool))
     if count == 0:
         return holes
-    sizes = np.bincount(labels.ravel(), minlength=count + 1)
-    drop = sizes < min_cells
-    if exempt is not None:
-        drop[np.unique(labels[binary_dilation(exempt, structure=np.ones((3, 3), bool))])] = True
+    drop = np.bincount(labels.ravel(), minlength=count + 1) < min_cells
     drop[0] = True
     return ~drop[labels]
 

@@ -193,9 +193,14 @@ def main() -> None:
     args.out.mkdir(parents=True, exist_ok=True)
     log = args.out / "results.jsonl"
     done = {(r["seed"], r["sensor"]): r for r in map(json.loads, log.read_text().splitlines())} if log.exists() else {}
-    seeds, boxed_in = usable_seeds(args.first_seed, args.scenes, args.size)
-    if args.only:
-        seeds = [seed for seed in seeds if seed in args.only]
+    if args.only:  # checked one by one: building all the campaign's worlds first takes minutes
+        seeds, boxed_in = [], []
+        for seed in args.only:
+            found, skipped = usable_seeds(seed, 1, args.size)
+            seeds += [s for s in found if s == seed]
+            boxed_in += skipped
+    else:
+        seeds, boxed_in = usable_seeds(args.first_seed, args.scenes, args.size)
     print(f"{len(seeds)} scenes: seeds {seeds[0]}-{seeds[-1]}; {len(boxed_in)} seeds skipped because the rover is "
           f"boxed in at the start on the true map: {boxed_in}", flush=True)
     tasks = [(seed, sensor) for seed in seeds for sensor in args.sensors if (seed, sensor) not in done]
