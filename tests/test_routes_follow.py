@@ -118,27 +118,60 @@ def test_backward_legs_use_the_same_scale_rule():
     assert report.success and abs(rover.x) < 0.13
 
 
-def test_backing_up_turns_away_the_far_points_shift_only():
-    """A shift made of heading error plus the parallax of a sideways offset: driving forward the whole
-    shift is turned away (it steers back onto the path), backing up only the far points' (the heading)."""
+class PlaneRover:
+    """A rover on the plane: x, y (metres) and heading h (radians CCW), actions exact."""
 
-    class ParallaxMatcher(PositionMatcher):
-        def match(self, live, stored):
-            result = super().match(live, stored)
-            if not result.same_place:
-                return result
-            heading = FOCAL * math.tan(live[1] - stored[1])
-            return MatchResult(True, result.similarity, shift_px=(heading + 30.0, 0.0), scale=result.scale,
-                               support=50, far_shift_px=(heading, 0.0))
+    focal_px = FOCAL
 
-    legs, _ = line_route(("forward", 2.0))
-    back = [Leg(leg.after, "backward", leg.value, leg.before) for leg in reversed(legs)]
-    rover = LineRover(x=2.0)
-    assert RouteFollower(back, ParallaxMatcher(), rover).run().success
-    assert not [a for a in rover.actions if a[0] == "turn"]          # heading right: nothing to turn
-    rover = LineRover()
-    RouteFollower(legs, ParallaxMatcher(), rover).run()
-    assert rover.actions[0][0] == "turn"                              # forward: the whole shift steers
+    def __init__(self, x=0.0, y=0.0, h=0.0):
+        self.x, self.y, self.h = x, y, h
+        self.actions = []
+
+    def look(self):
+        return (self.x, self.y, self.h)
+
+    def act(self, kind, value):
+        self.actions.append((kind, value))
+        if kind == "turn":
+            self.h += value
+        else:
+            step = value if kind == "forward" else -value
+            self.x += step * math.cos(self.h)
+            self.y += step * math.sin(self.h)
+
+
+class ParallaxMatcher:
+    """Views along +x from places on the x axis. A sideways offset e adds parallax f e / Z to the
+    heading's shift: Z = 4 m for the matched points on average, 12 m for the far ones."""
+
+    name = "parallax"
+
+    def match(self, live, stored):
+        (x, y, h), (sx, sy, sh) = live, stored
+        if abs(x - sx) > 0.6 or abs(y - sy) > 1.0 or abs(h - sh) > math.radians(15):
+            return MatchResult(False, 0.0)
+        heading, offset = math.tan(h - sh), y - sy
+        return MatchResult(True, 1.0 - abs(x - sx), shift_px=(FOCAL * (heading + offset / DEPTH), 0.0),
+                           scale=DEPTH / (DEPTH + (sx - x)), support=50,
+                           far_shift_px=(FOCAL * (heading + offset / 12.0), 0.0))
+
+
+def test_backing_up_steers_the_rear_back_onto_the_path():
+    """Backing up a straight route from 0.3 m beside its end: turning away the whole shift (as
+    forward) would steer the rover off, the heading alone keeps the offset; the far points' shift
+    with the parallax turned the other way brings it back."""
+    places = [(2.0 * k, 0.0, 0.0) for k in range(7)]
+    back = [Leg(places[k + 1], "backward", 2.0, places[k]) for k in reversed(range(6))]
+    offsets = {}
+    for gain in (2.0, 0.0):
+        rover = PlaneRover(x=12.0, y=0.3)
+        assert RouteFollower(back, ParallaxMatcher(), rover, FollowParams(backing_gain=gain)).run().success
+        offsets[gain] = abs(rover.y)
+    assert offsets[2.0] < 0.1 < 0.2 < offsets[0.0]
+    # Forward, the whole shift steers: the same offset at the start is gone at the end.
+    ahead = [Leg(places[k], "forward", 2.0, places[k + 1]) for k in range(6)]
+    rover = PlaneRover(y=0.3)
+    assert RouteFollower(ahead, ParallaxMatcher(), rover).run().success and abs(rover.y) < 0.1
 
 
 def test_params_are_checked():

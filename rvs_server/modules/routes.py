@@ -60,6 +60,8 @@ class FollowSettings(Settings):
     recovery_window: int = Field(3, ge=0, le=50)
     scan_deg: tuple[float, ...] = Field((8.0, -8.0, 16.0, -16.0), description="headings, relative to the turn's "
                                         "end, looked at when a turn's image after is not seen")
+    backing_gain: float = Field(2.0, ge=0, le=10, description="backing up, the parallax of a sideways offset (near "
+                                "minus far points' shift) turns the rear back onto the path this strongly")
 
 
 class RoutesSettings(Settings):

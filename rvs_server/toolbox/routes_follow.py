@@ -67,6 +67,7 @@ class FollowParams:
     max_approach_steps: int = 10
     recovery_window: int = 3           # places before and after the expected one ranked when lost
     scan_deg: tuple[float, ...] = (8.0, -8.0, 16.0, -16.0)   # looked at when a turn's image after is not seen
+    backing_gain: float = 2.0          # backing up, the parallax (near minus far shift) steers this much the other way
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.blind_fraction <= 1.0:
@@ -159,15 +160,20 @@ class RouteFollower:
     def settle(self, target: Any, report: LegReport | None = None, backing: bool = False) -> MatchResult:
         """The live view against a target, turning away the heading error the match shows.
 
-        The whole shift (heading and the parallax of a sideways offset) steers a rover that drives
-        forward back onto the path, as in teach and repeat; backing up, the same turn would steer it
-        away, so then only the far points' shift, the heading alone, is turned away."""
+        A shift is the heading error plus the parallax of a sideways offset, larger on near points.
+        Driving forward, turning the whole shift away points the rover back onto the path, as in
+        teach and repeat. Backing up, that turn would steer it farther off: then the far points'
+        shift (mostly heading) is turned away and the parallax turns the other way, so the rear
+        points back onto the path instead (backing_gain, since the far points are not at infinity)."""
         result = self.matcher.match(self.rover.look(), target)
         for _ in range(self.params.max_heading_corrections):
-            shift = result.far_shift_px if backing and result.far_shift_px is not None else result.shift_px
-            if not result.same_place or shift is None:
+            if not result.same_place or result.shift_px is None:
                 break
-            error = heading_offset(shift[0], self.rover.focal_px)
+            shift = result.shift_px[0]
+            if backing and result.far_shift_px is not None:
+                far = result.far_shift_px[0]
+                shift = far + self.params.backing_gain * (far - shift)
+            error = heading_offset(shift, self.rover.focal_px)
             if abs(math.degrees(error)) <= self.params.heading_tolerance_deg:
                 break
             self.rover.act("turn", -error)
