@@ -314,7 +314,9 @@ class DenseConfig:
     min_baseline_ratio: float = 0.04
     max_baseline_ratio: float = 0.25
     max_frame_gap: int = 10               # frames between a pair's two views
-    min_baseline_angle_deg: float = 60.0  # between the baseline and each optical axis
+    min_baseline_angle_deg: float = 60.0  # between the baseline and each optical axis ...
+    fallback_baseline_angle_deg: float = 30.0  # ... or this, when no pair of the hop reaches it (a steep hop
+                                          # flies along the camera's 45 degree view: its pairs stand 40-50 off)
     max_view_angle_deg: float = 55.0      # half field of view kept in the rectified images
     max_pairs: int = 12                   # spread over the usable frames; the cost is per pair
     min_disparity_px: float = 4.0         # depth error grows as 1 / disparity: drop the far tail
@@ -376,8 +378,20 @@ def scene_depths(reconstruction: HopReconstruction, intrinsics: Intrinsics) -> d
 
 def choose_pairs(reconstruction: HopReconstruction, depths: dict, config: DenseConfig) -> list[tuple[int, int]]:
     """For each registered frame, the later frame whose baseline / depth ratio is nearest the target,
-    among those in range whose baseline stands off both optical axes; then at most max_pairs of them,
-    spread evenly in time."""
+    among those in range whose baseline stands off both optical axes (min_baseline_angle_deg, or the
+    fallback angle if no pair does); then at most max_pairs of them, spread evenly in time."""
+    for angle in (config.min_baseline_angle_deg, config.fallback_baseline_angle_deg):
+        chosen = _pairs_off_axis(reconstruction, depths, config, angle)
+        if chosen:
+            break
+    if len(chosen) > config.max_pairs:
+        keep = np.unique(np.round(np.linspace(0, len(chosen) - 1, config.max_pairs)).astype(int))
+        chosen = [chosen[k] for k in keep]
+    return chosen
+
+
+def _pairs_off_axis(reconstruction: HopReconstruction, depths: dict, config: DenseConfig,
+                    min_angle_deg: float) -> list[tuple[int, int]]:
     chosen = []
     registered = set(reconstruction.registered_indices.tolist())
     for first in sorted(registered):
@@ -393,16 +407,13 @@ def choose_pairs(reconstruction: HopReconstruction, depths: dict, config: DenseC
             if not config.min_baseline_ratio <= ratio <= config.max_baseline_ratio:
                 continue
             if min(_off_axis_deg(baseline, reconstruction.camera_rotations[k]) for k in (first, second)) \
-                    < config.min_baseline_angle_deg:
+                    < min_angle_deg:
                 continue
             error = abs(math.log(ratio / config.target_baseline_ratio))
             if error < best_error:
                 best, best_error = second, error
         if best is not None:
             chosen.append((first, best))
-    if len(chosen) > config.max_pairs:
-        keep = np.unique(np.round(np.linspace(0, len(chosen) - 1, config.max_pairs)).astype(int))
-        chosen = [chosen[k] for k in keep]
     return chosen
 
 

@@ -148,6 +148,21 @@ def test_pair_rectification_maps_a_point_to_one_row_at_its_disparity():
         assert np.allclose([maps[0][v, column], maps[1][v, column]], seen, atol=1e-3)
 
 
+def test_pairs_fall_back_to_a_smaller_angle_off_the_optical_axis_when_no_pair_reaches_the_preferred_one():
+    # A steep hop flies along the camera's view: every baseline stands 45 degrees off the optical axis.
+    direction = np.array([0.0, math.sin(math.radians(45)), math.cos(math.radians(45))])
+    centres = 0.25 * np.arange(12)[:, None] * direction
+    reconstruction = _two_cameras(np.eye(3), centres)
+    depths = {k: (10.0, 5.0) for k in range(12)}
+    pairs = hop_sfm.choose_pairs(reconstruction, depths, hop_sfm.DenseConfig())
+    assert pairs[:4] == [(0, 4), (1, 5), (2, 6), (3, 7)]                  # baseline 1 m = 0.1 x depth
+    assert hop_sfm.choose_pairs(reconstruction, depths, hop_sfm.DenseConfig(fallback_baseline_angle_deg=50.0)) == []
+    # Where pairs reach the preferred angle, the fallback is not used: a sideways pass.
+    sideways = _two_cameras(np.eye(3), 0.25 * np.arange(12)[:, None] * np.array([1.0, 0.0, 0.1]))
+    assert hop_sfm.choose_pairs(sideways, depths, hop_sfm.DenseConfig()) == \
+        hop_sfm.choose_pairs(sideways, depths, hop_sfm.DenseConfig(fallback_baseline_angle_deg=60.0))
+
+
 def _two_cameras(rotation: np.ndarray, centres: np.ndarray) -> hop_sfm.HopReconstruction:
     n = len(centres)
     return hop_sfm.HopReconstruction(centres, np.repeat(rotation[None], n, axis=0), np.ones(n, bool),
