@@ -55,10 +55,11 @@ elevation_deg = {elevation}
 """
 
 
-def lay_route(seed: int) -> tuple[list[tuple[str, float]], float]:
-    """Actions (kind, value: metres or degrees) of a 20-50 m route from (0, 0) on the true map, and
-    the starting heading in degrees."""
-    world = World.build(WorldConfig(seed=seed, size_m=(SIZE_M, SIZE_M)))
+def lay_route(world: World, rng: np.random.Generator, start: tuple[float, float], lengths: tuple[float, float],
+              heading: float | None = None) -> tuple[list[tuple[str, float]], float, float]:
+    """Actions (kind, value: metres or degrees) of a route from `start` on the true map whose length
+    lies within `lengths`, the starting heading in degrees (given, or along the first leg), and the
+    route's length."""
     half = SIZE_M / 2 - 4.0
     spec = GridSpec.covering((-half, half), (-half, half), 0.05)
     hazard = world.obstacle_mask(0.10, 0.05, spec.x_range, spec.y_range)[:spec.rows, :spec.cols]
@@ -67,28 +68,46 @@ def lay_route(seed: int) -> tuple[list[tuple[str, float]], float]:
     # Legs as a person would teach them: chords of the shortest path, at most LEG_M long, that keep
     # 0.3 m (the rover's half width) from every rock.
     blocked = inflate_hazards(hazard, 0.05, 0.3).mask
-    rng = np.random.default_rng([seed, 3])
-    for _ in range(200):
-        distance, bearing = rng.uniform(17.0, half - 1.0), rng.uniform(-math.pi, math.pi)
-        goal = (distance * math.cos(bearing), distance * math.sin(bearing))
-        plan = plan_path(layers, (0.0, 0.0), goal, params)
-        if not plan.found or not 20.0 <= plan.length_m <= 50.0:
+    for _ in range(300):
+        distance, bearing = rng.uniform(0.7 * lengths[0], lengths[1]), rng.uniform(-math.pi, math.pi)
+        goal = (start[0] + distance * math.cos(bearing), start[1] + distance * math.sin(bearing))
+        if max(abs(goal[0]), abs(goal[1])) > half - 1.0:
             continue
-        points = chords(plan.cells, blocked, LEG_M / 0.05)
-        points = cells_to_world(spec, points)
-        heading = math.atan2(*(points[1] - points[0])[::-1])
-        start_heading = heading
+        plan = plan_path(layers, start, goal, params)
+        if not plan.found or not lengths[0] <= plan.length_m <= lengths[1]:
+            continue
+        points = cells_to_world(spec, chords(plan.cells, blocked, LEG_M / 0.05))
+        points[0] = start
+        first = math.atan2(*(points[1] - points[0])[::-1])
+        start_heading = first if heading is None else math.radians(heading)
         actions: list[tuple[str, float]] = []
-        for a, b in zip(points[:-1], points[1:]):
-            bearing_ab = math.atan2(b[1] - a[1], b[0] - a[0])
-            turn = math.degrees((bearing_ab - heading + math.pi) % (2 * math.pi) - math.pi)
+        at = start_heading
+        for p, q in zip(points[:-1], points[1:]):
+            bearing_pq = math.atan2(q[1] - p[1], q[0] - p[0])
+            turn = math.degrees((bearing_pq - at + math.pi) % (2 * math.pi) - math.pi)
             if abs(turn) > 3.0:
                 actions.append(("turn", round(turn, 2)))
-            heading = bearing_ab
-            actions.append(("forward", round(float(np.hypot(*(b - a))), 3)))
-        if 20.0 <= sum(v for k, v in actions if k == "forward") <= 50.0:
-            return actions, math.degrees(start_heading)
-    raise RuntimeError(f"scene {seed}: no route of 20-50 m found")
+            at = bearing_pq
+            actions.append(("forward", round(float(np.hypot(*(q - p))), 3)))
+        length = sum(v for k, v in actions if k == "forward")
+        if lengths[0] <= length <= lengths[1]:
+            return actions, math.degrees(start_heading), length
+    raise RuntimeError(f"no route of {lengths[0]:g}-{lengths[1]:g} m from {start}")
+
+
+def scene_routes(seed: int) -> dict:
+    """The scene's main route (20-50 m, from a random start near the centre) and a branch of 8-15 m
+    taught from the main route's end, for route-connect and route-go."""
+    world = World.build(WorldConfig(seed=seed, size_m=(SIZE_M, SIZE_M)))
+    rng = np.random.default_rng([seed, 3])
+    obstacles = world.obstacle_mask(0.10, 0.05, (-10.0, 10.0), (-10.0, 10.0))
+    for _ in range(100):
+        start = (float(rng.uniform(-8, 8)), float(rng.uniform(-8, 8)))
+        row, col = int((start[1] + 10) / 0.05), int((start[0] + 10) / 0.05)
+        if not obstacles[max(0, row - 12):row + 12, max(0, col - 12):col + 12].any():
+            break
+    actions, heading, length = lay_route(world, rng, start, (20.0, 50.0))
+    return {"start": start, "heading": heading, "actions": actions, "length": length, "rng": rng, "world": world}
 
 
 def chords(cells: np.ndarray, blocked: np.ndarray, longest: float) -> np.ndarray:
@@ -117,59 +136,104 @@ def configs_for(root: Path, seed: int, pose: tuple[float, float, float], sun: tu
 
 
 def teach(seed: int, out: Path) -> dict:
+    """Teach the main route r and, from its end, the branch b, in one session of one server."""
     root = out / f"scene{seed}"
     shutil.rmtree(root, ignore_errors=True)
-    actions, heading = lay_route(seed)
-    server = ServerProcess(data_dir=root / "data", config_dir=configs_for(root, seed, (0.0, 0.0, heading), SUN))
+    laid = scene_routes(seed)
+    start = (*laid["start"], laid["heading"])
+    server = ServerProcess(data_dir=root / "data", config_dir=configs_for(root, seed, start, SUN))
     server.start(timeout=300)
+    taught = {}
+    products = root / "data" / "products"
     try:
         with server.connect(timeout=600) as client:
-            assert " OK " in f" {client.command('route-record start --name r', timeout=300)} "
-            for kind, value in actions:
-                reply = client.command(f"drive --{kind} {value}", timeout=300)
-                if " OK " not in f" {reply} ":
-                    raise RuntimeError(f"scene {seed}: drive --{kind} {value}: {reply}")
-            stop = pairs(client.command("route-record stop", timeout=300))
+            taught["r"] = record(client, seed, "r", laid["actions"], products)
+            end = taught["r"]["taught"][-1]
+            try:
+                branch, _, _ = lay_route(laid["world"], laid["rng"], (end[0], end[1]), (8.0, 15.0),
+                                         heading=math.degrees(end[2]))
+                taught["b"] = record(client, seed, "b", branch, products)
+            except RuntimeError as exc:   # the main route is still scored
+                print(f"scene {seed}: no branch: {exc}", flush=True)
     finally:
         server.stop()
-    taught = json.loads((root / "data" / "products" / stop["product"] / "truth" / "path.json").read_text())["path"]
-    return {"seed": seed, "actions": actions, "legs": int(stop["triplets"]), "length_m": float(stop["length"]),
+    return {"seed": seed, **taught["r"], "branch": taught.get("b")}
+
+
+def record(client, seed: int, name: str, actions: list[tuple[str, float]], products: Path) -> dict:
+    assert " OK " in f" {client.command(f'route-record start --name {name}', timeout=300)} "
+    for kind, value in actions:
+        reply = client.command(f"drive --{kind} {value}", timeout=300)
+        if " OK " not in f" {reply} ":
+            raise RuntimeError(f"scene {seed}: drive --{kind} {value}: {reply}")
+    stop = pairs(client.command("route-record stop", timeout=300))
+    taught = json.loads((products / stop["product"] / "truth" / "path.json").read_text())["path"]
+    return {"actions": actions, "legs": int(stop["triplets"]), "length_m": float(stop["length"]),
             "bytes": int(stop["bytes"]), "bytes_per_m": float(stop["bytes_per_m"]), "taught": taught}
 
 
 def repeat(seed: int, out: Path, route: dict, matcher: str, sun_moved: bool, reverse: bool) -> dict:
-    root = out / f"scene{seed}"
     taught = np.array(route["taught"])
     place = taught[-1] if reverse else taught[0]
     goal = taught[0] if reverse else taught[-1]
     rng = np.random.default_rng([seed, int(reverse), int(sun_moved), len(matcher)])
+    name = f"{matcher}-{'moved' if sun_moved else 'same'}-{'reverse' if reverse else 'forward'}"
+    command = f"route-follow --name r {'--reverse ' if reverse else ''}--matcher {matcher} --output {name}"
+    result = run_from(seed, out, name, near(place, rng), MOVED_SUN if sun_moved else SUN, [], command, goal, taught)
+    return {"seed": seed, "matcher": matcher, "sun": "moved" if sun_moved else "same",
+            "direction": "reverse" if reverse else "forward", **result,
+            "length_m": route["length_m"], "legs": route["legs"]}
+
+
+def network(seed: int, out: Path, route: dict) -> dict:
+    """route-connect, then route-go from near the main route's start to the branch's end."""
+    branch = route["branch"]
+    taught = np.vstack([route["taught"], branch["taught"]])
+    rng = np.random.default_rng([seed, 7])
+    command = f"route-go --to b:{branch['legs']} --output network"
+    result = run_from(seed, out, "network", near(route["taught"][0], rng), SUN, ["route-connect"], command,
+                      np.array(branch["taught"][-1]), taught)
+    return {"seed": seed, "matcher": "features", "sun": "same", "direction": "network", **result,
+            "length_m": route["length_m"] + branch["length_m"], "legs": route["legs"] + branch["legs"]}
+
+
+def near(place, rng: np.random.Generator) -> tuple[float, float, float]:
+    """A start START_OFFSET off a place: metres in a random direction, degrees either way."""
     angle = rng.uniform(-math.pi, math.pi)
-    pose = (place[0] + START_OFFSET[0] * math.cos(angle), place[1] + START_OFFSET[0] * math.sin(angle),
+    return (place[0] + START_OFFSET[0] * math.cos(angle), place[1] + START_OFFSET[0] * math.sin(angle),
             math.degrees(place[2]) + rng.choice([-1, 1]) * START_OFFSET[1])
-    run = root / f"{matcher}-{'moved' if sun_moved else 'same'}-{'reverse' if reverse else 'forward'}"
+
+
+def run_from(seed: int, out: Path, name: str, pose, sun, before: list[str], command: str, goal: np.ndarray,
+             taught: np.ndarray) -> dict:
+    """A fresh server on the scene's data directory with the rover at pose: the commands `before`,
+    then `command`, scored against the goal and the taught path."""
+    root = out / f"scene{seed}"
+    run = root / name
     shutil.rmtree(run, ignore_errors=True)
-    server = ServerProcess(data_dir=root / "data", config_dir=configs_for(run, seed, pose, MOVED_SUN if sun_moved
-                                                                          else SUN))
+    server = ServerProcess(data_dir=root / "data", config_dir=configs_for(run, seed, pose, sun))
     started = time.perf_counter()
     server.start(timeout=300)
     try:
         with server.connect(timeout=1800) as client:
-            reply = client.command(f"route-follow --name r {'--reverse ' if reverse else ''}--matcher {matcher} "
-                                   f"--output {run.name}", timeout=1800)
+            for line in before:
+                reply = client.command(line, timeout=1800)
+                if " OK " not in f" {reply} ":
+                    raise RuntimeError(f"scene {seed}: {line}: {reply}")
+            reply = client.command(command, timeout=1800)
     finally:
         server.stop()
     seconds = time.perf_counter() - started
-    product = root / "data" / "products" / run.name
+    product = root / "data" / "products" / name
     path = np.array(json.loads((product / "truth" / "path.json").read_text())["path"])
     follow = json.loads((product / "follow.json").read_text())
     final = float(np.linalg.norm(path[-1, :2] - goal[:2]))
+    taught = np.asarray(taught)
     gaps = np.min(np.linalg.norm(path[:, None, :2] - taught[None, :, :2], axis=2), axis=1)
     ok = " OK " in f" {reply} "
-    return {"seed": seed, "matcher": matcher, "sun": "moved" if sun_moved else "same",
-            "direction": "reverse" if reverse else "forward", "ok": ok, "success": bool(ok and final <= ARRIVED_M),
-            "final_m": round(final, 3), "max_deviation_m": round(float(gaps.max()), 3),
-            "length_m": route["length_m"], "legs": route["legs"], "images": follow["images"],
-            "last_matched": follow["segments"][0]["last_matched"], "seconds": round(seconds, 1),
+    return {"ok": ok, "success": bool(ok and final <= ARRIVED_M), "final_m": round(final, 3),
+            "max_deviation_m": round(float(gaps.max()), 3), "images": follow["images"],
+            "last_matched": follow["segments"][-1]["last_matched"], "seconds": round(seconds, 1),
             "reply": reply[:200]}
 
 
@@ -179,14 +243,16 @@ def scene(seed: int, out: Path) -> list[dict]:
     print(f"scene {seed}: taught {route['length_m']:.1f} m in {route['legs']} legs, "
           f"{route['bytes_per_m']:.0f} bytes/m", flush=True)
     results = []
-    for matcher in ("features", "contour"):
-        for sun_moved in (False, True):
-            for reverse in (False, True):
-                result = repeat(seed, out, route, matcher, sun_moved, reverse)
-                results.append({**result, "bytes_per_m": route["bytes_per_m"]})
-                print(f"scene {seed} {matcher} sun {result['sun']} {result['direction']}: "
-                      f"{'success' if result['success'] else 'FAILED'}, final {result['final_m']:.2f} m, "
-                      f"deviation {result['max_deviation_m']:.2f} m, {result['seconds']:.0f} s", flush=True)
+    runs = [(repeat, (seed, out, route, matcher, sun_moved, reverse))
+            for matcher in ("features", "contour") for sun_moved in (False, True) for reverse in (False, True)]
+    if route["branch"]:
+        runs.append((network, (seed, out, route)))
+    for function, arguments in runs:
+        result = function(*arguments)
+        results.append({**result, "bytes_per_m": route["bytes_per_m"]})
+        print(f"scene {seed} {result['matcher']} sun {result['sun']} {result['direction']}: "
+              f"{'success' if result['success'] else 'FAILED'}, final {result['final_m']:.2f} m, "
+              f"deviation {result['max_deviation_m']:.2f} m, {result['seconds']:.0f} s", flush=True)
     return results
 
 
@@ -201,7 +267,7 @@ def report(results: list[dict]) -> str:
     lines.append("matcher   sun    direction  success   final m (median, max)   deviation m (median, max)")
     for matcher in ("features", "contour"):
         for sun in ("same", "moved"):
-            for direction in ("forward", "reverse"):
+            for direction in ("forward", "reverse", "network"):
                 rows = [r for r in results if (r["matcher"], r["sun"], r["direction"]) == (matcher, sun, direction)]
                 if not rows:
                     continue
