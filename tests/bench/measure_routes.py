@@ -237,14 +237,14 @@ def run_from(seed: int, out: Path, name: str, pose, sun, before: list[str], comm
             "reply": reply[:200]}
 
 
-def scene(seed: int, out: Path) -> list[dict]:
+def scene(seed: int, out: Path, matchers: tuple[str, ...] = ("features", "contour")) -> list[dict]:
     route = teach(seed, out)
     (out / f"scene{seed}" / "route.json").write_text(json.dumps(route))
     print(f"scene {seed}: taught {route['length_m']:.1f} m in {route['legs']} legs, "
           f"{route['bytes_per_m']:.0f} bytes/m", flush=True)
     results = []
     runs = [(repeat, (seed, out, route, matcher, sun_moved, reverse))
-            for matcher in ("features", "contour") for sun_moved in (False, True) for reverse in (False, True)]
+            for matcher in matchers for sun_moved in (False, True) for reverse in (False, True)]
     if route["branch"]:
         runs.append((network, (seed, out, route)))
     for function, arguments in runs:
@@ -284,6 +284,7 @@ def main() -> None:
     parser.add_argument("--scenes", type=int, default=10)
     parser.add_argument("--first-seed", type=int, default=501)
     parser.add_argument("--jobs", type=int, default=2)
+    parser.add_argument("--matchers", nargs="+", default=["features", "contour"], choices=["features", "contour"])
     parser.add_argument("--report", action="store_true", help="only summarise --out's results")
     parser.add_argument("--out", type=Path, default=Path("/tmp/rvs-routes"))
     args = parser.parse_args()
@@ -294,7 +295,7 @@ def main() -> None:
         done = {r["seed"] for r in results}
         seeds = [s for s in range(args.first_seed, args.first_seed + args.scenes) if s not in done]
         with ProcessPoolExecutor(max_workers=args.jobs) as pool:
-            for seed, future in [(s, pool.submit(scene, s, args.out)) for s in seeds]:
+            for seed, future in [(s, pool.submit(scene, s, args.out, tuple(args.matchers))) for s in seeds]:
                 try:
                     rows = future.result()
                 except Exception as exc:  # a scene that cannot run is reported, not hidden
