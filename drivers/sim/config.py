@@ -110,6 +110,22 @@ class AlbedoConfig(_Model):
     detail_contrast: float = Field(0.12, ge=0.0)
 
 
+class DriveError(BaseModel):
+    """Standard deviations of the simulated rover's motion errors (drivers/sim/motion.py)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    turn_scale: float = Field(0.02, ge=0, description="relative error of a turn's angle")
+    turn_noise_deg: float = Field(0.5, ge=0, description="absolute error of every turn, degrees")
+    distance_scale: float = Field(0.02, ge=0, description="relative error of a distance")
+    heading_drift_deg_per_m: float = Field(0.3, ge=0, description="heading creep while driving, degrees per metre")
+    lateral_slip_per_m: float = Field(0.01, ge=0, description="sideways slip, metres per metre driven")
+
+    @classmethod
+    def none(cls) -> "DriveError":
+        return cls(turn_scale=0, turn_noise_deg=0, distance_scale=0, heading_drift_deg_per_m=0, lateral_slip_per_m=0)
+
+
 class WorldConfig(_Model):
     """Everything that decides a simulated world. The same config builds the same world."""
 
@@ -128,6 +144,8 @@ class WorldConfig(_Model):
     # Where the simulated rover stands when a server starts: x, y (metres), heading (degrees CCW
     # from east). Not part of the ground: the same seed builds the same world wherever it starts.
     rover_start: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    # How the simulated rover misses the motions it is told to make (drivers/sim/motion.py).
+    drive_error: DriveError = DriveError()
 
     @model_validator(mode="after")
     def _check(self) -> "WorldConfig":

@@ -21,25 +21,11 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
 
+from .config import DriveError
 from .rover import Rover
 
-
-class DriveError(BaseModel):
-    """Standard deviations of the execution errors (see the module docstring)."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-    turn_scale: float = Field(0.02, ge=0, description="relative error of a turn's angle")
-    turn_noise_deg: float = Field(0.5, ge=0, description="absolute error of every turn, degrees")
-    distance_scale: float = Field(0.02, ge=0, description="relative error of a distance")
-    heading_drift_deg_per_m: float = Field(0.3, ge=0, description="heading creep while driving, degrees per metre")
-    lateral_slip_per_m: float = Field(0.01, ge=0, description="sideways slip, metres per metre driven")
-
-    @classmethod
-    def none(cls) -> "DriveError":
-        return cls(turn_scale=0, turn_noise_deg=0, distance_scale=0, heading_drift_deg_per_m=0, lateral_slip_per_m=0)
+__all__ = ["DriveError", "Motion", "execute", "dead_reckon", "turn_and_distance"]
 
 
 @dataclass(frozen=True)

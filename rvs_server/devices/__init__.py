@@ -35,8 +35,10 @@ class Devices:
         self.config = config
         self.clock = clock
         if testbed is None:
-            x, y, heading = (world_config or WorldConfig()).rover_start
-            testbed = SimulatedTestbed(clock, world_config, world_file, start_pose=(x, y, math.radians(heading)))
+            world = world_config or WorldConfig()
+            x, y, heading = world.rover_start
+            testbed = SimulatedTestbed(clock, world_config, world_file, start_pose=(x, y, math.radians(heading)),
+                                       drive_error=world.drive_error)
         self.testbed = testbed
         self.items: dict[str, Device] = {
             "ptu": PtuDevice(config.ptu, clock, self.testbed),

@@ -2,17 +2,21 @@
 unchanged and moved, with both matchers, through real servers; scored against the simulator's truth.
 
 Per scene (50 m worlds, 7 % rock cover, three craters): a route of 20-50 m is laid on the true map
-(rocks over 0.10 m grown by 0.5 m avoided) from the centre toward a random goal, cut into straight
-legs of at most 2.5 m that keep 0.3 m from every rock, with a turn wherever it bends, and taught once (route-record, drive ..., route-record
-stop) by the simulated rover with its drive error. The route database then serves every repeat:
-each repeat is a fresh server on the same data directory (the routes survive the restart) whose
-rover starts near the route's start (forward) or end (reverse), 0.2 m and 5 degrees off, under the
-teaching sun or under one moved 40 degrees in azimuth and 20 degrees up, and runs
-`route-follow --name R [--reverse] --matcher M`. Scored per repeat:
+(rocks over 0.10 m grown by 0.5 m avoided) from a start within 8 m of the centre toward a random
+goal, cut into straight legs of at most 2.5 m that keep 0.45 m from every rock, with a turn wherever
+it bends, and taught once (route-record, drive ..., route-record stop) by a teacher who steers: the
+drive error is off while teaching (world.toml drive_error), as a person at the controls keeps the
+rover where they mean it to go. A branch of 8-15 m is taught the same way from the route's end.
+The route database then serves every repeat: each repeat is a fresh server on the same data
+directory (the routes survive the restart) whose rover, with its drive error, starts near the
+route's start (forward) or end (reverse), 0.2 m and 5 degrees off, under the teaching sun or under
+one moved 40 degrees in azimuth and 20 degrees up, and runs `route-follow --name r [--reverse]
+--matcher M`. Last, the network: route-connect, then route-go from near the route's start to the
+branch's end. Scored per run:
 
-- success: the reply is OK and the rover truly stands within 0.5 m of the route's last place;
-- final distance: from the true end of the taught route (or its start, in reverse);
-- deviation: the largest distance of the repeat's true path from the taught true path.
+- success: the reply is OK and the rover truly stands within 0.5 m of the goal place;
+- final distance: from the goal place's true position;
+- deviation: the largest distance of the run's true path from the taught true path.
 
     .venv/bin/python tests/bench/measure_routes.py [--scenes 10] [--first-seed 501] [--jobs 2]
     .venv/bin/python tests/bench/measure_routes.py --report [--out /tmp/rvs-routes]
@@ -53,6 +57,15 @@ rover_start = [{x:.4f}, {y:.4f}, {heading:.3f}]
 azimuth_deg = {azimuth}
 elevation_deg = {elevation}
 """
+# The teacher steers (as a person at the controls would): the route taught is the route laid, clear
+# of rocks. Repeats drive with the simulated rover's drive error.
+TEACHER = """[drive_error]
+turn_scale = 0.0
+turn_noise_deg = 0.0
+distance_scale = 0.0
+heading_drift_deg_per_m = 0.0
+lateral_slip_per_m = 0.0
+"""
 
 
 def lay_route(world: World, rng: np.random.Generator, start: tuple[float, float], lengths: tuple[float, float],
@@ -66,8 +79,8 @@ def lay_route(world: World, rng: np.random.Generator, start: tuple[float, float]
     layers = MapLayers(spec, np.zeros(spec.shape), hazard, np.zeros(spec.shape, bool))
     params = PlanningParams(weight=1.0, rover_radius_m=0.5, hazard_margin_m=0.0)
     # Legs as a person would teach them: chords of the shortest path, at most LEG_M long, that keep
-    # 0.3 m (the rover's half width) from every rock.
-    blocked = inflate_hazards(hazard, 0.05, 0.3).mask
+    # 0.45 m from every rock (the body's half-diagonal is 0.37 m): no wheel climbs one.
+    blocked = inflate_hazards(hazard, 0.05, 0.45).mask
     for _ in range(300):
         distance, bearing = rng.uniform(0.7 * lengths[0], lengths[1]), rng.uniform(-math.pi, math.pi)
         goal = (start[0] + distance * math.cos(bearing), start[1] + distance * math.sin(bearing))
@@ -126,12 +139,13 @@ def chords(cells: np.ndarray, blocked: np.ndarray, longest: float) -> np.ndarray
     return cells[kept]
 
 
-def configs_for(root: Path, seed: int, pose: tuple[float, float, float], sun: tuple[float, float]) -> Path:
+def configs_for(root: Path, seed: int, pose: tuple[float, float, float], sun: tuple[float, float],
+                teacher: bool = False) -> Path:
     configs = root / "configs"
     shutil.rmtree(configs, ignore_errors=True)
     shutil.copytree(REPO / "configs", configs)
-    (configs / "world.toml").write_text(WORLD.format(seed=seed, size=SIZE_M, x=pose[0], y=pose[1],
-                                                     heading=pose[2], azimuth=sun[0], elevation=sun[1]))
+    (configs / "world.toml").write_text(WORLD.format(seed=seed, size=SIZE_M, x=pose[0], y=pose[1], heading=pose[2],
+                                                     azimuth=sun[0], elevation=sun[1]) + (TEACHER if teacher else ""))
     return configs
 
 
@@ -141,7 +155,7 @@ def teach(seed: int, out: Path) -> dict:
     shutil.rmtree(root, ignore_errors=True)
     laid = scene_routes(seed)
     start = (*laid["start"], laid["heading"])
-    server = ServerProcess(data_dir=root / "data", config_dir=configs_for(root, seed, start, SUN))
+    server = ServerProcess(data_dir=root / "data", config_dir=configs_for(root, seed, start, SUN, teacher=True))
     server.start(timeout=300)
     taught = {}
     products = root / "data" / "products"
