@@ -77,7 +77,7 @@ class NavigationSettings(Settings):
     blind_radius_m: PerSensor = Field(
         PerSensor(tof=0.9, stereo=1.7), description="per sensor, the ring round the mast it cannot see: counts as seen "
         "when the part of the path to hand out is cut, and is no hole where the rover started")
-    holes: Literal["hazard", "unknown"] = Field("hazard", description="unknown cells walled in by known ground "
+    holes: Literal["hazard", "unknown"] = Field("unknown", description="unknown cells walled in by known ground "
                                                 "(nothing came back from a place the sensor looked at): hazard, "
                                                 "or unknown like the unexplored outside")
     min_hole_m2: float = Field(0.01, ge=0, description="smaller holes stay unknown")
