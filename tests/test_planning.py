@@ -554,3 +554,19 @@ def test_holes_walled_in_by_seen_ground_become_hazards_but_not_the_outside_the_s
     around = plan_path(with_hazards(layers, holes), (0.55, 1.25), (2.05, 1.25), params)
     assert around.found and not np.any(holes[around.cells[:, 0], around.cells[:, 1]])
     assert around.length_m > through.length_m
+
+
+def test_holes_are_hazards_for_stereo_and_stay_unknown_for_tof_by_default():
+    """navigation.toml holes: stereo's holes are often rocks it could not match, TOF's occlusion shadows."""
+    from rvs_server.modules.navigation import NavigationSettings, holes_as_hazards
+    from rvs_server.toolbox.geometry import RoverPose
+    spec = GridSpec(0.0, 0.0, 0.1, 30, 30)
+    unknown = np.zeros(spec.shape, bool)
+    unknown[20:24, 20:24] = True                         # 2.5 m from the start: outside either blind ring
+    layers = MapLayers(spec, np.where(unknown, np.nan, 0.0), np.zeros(spec.shape, bool), unknown)
+    settings = NavigationSettings()
+    start = RoverPose(0.5, 0.5)
+    assert holes_as_hazards(layers, start, "stereo", settings).hazard[20:24, 20:24].all()
+    assert holes_as_hazards(layers, start, "tof", settings) is layers
+    both = NavigationSettings(holes={"tof": "hazard", "stereo": "hazard"})
+    assert holes_as_hazards(layers, start, "tof", both).hazard[20:24, 20:24].all()

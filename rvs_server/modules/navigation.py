@@ -43,6 +43,20 @@ class PerSensor(BaseModel):
         return getattr(self, sensor)
 
 
+HolePolicy = Literal["hazard", "unknown"]
+
+
+class HolesPerSensor(BaseModel):
+    """What unknown cells walled in by seen ground are, for each mapping sensor."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    tof: HolePolicy = "unknown"
+    stereo: HolePolicy = "hazard"
+
+    def of(self, sensor: str) -> HolePolicy:
+        return getattr(self, sensor)
+
+
 class NavigationSettings(Settings):
     weight: float = Field(0.5, ge=0, le=1, description="1: shortest path; 0: easiest ground")
     rover_radius_m: float = Field(0.3, gt=0, description="hazards grow by this plus the margin")
@@ -77,9 +91,9 @@ class NavigationSettings(Settings):
     blind_radius_m: PerSensor = Field(
         PerSensor(tof=0.9, stereo=1.7), description="per sensor, the ring round the mast it cannot see: counts as seen "
         "when the part of the path to hand out is cut, and is no hole where the rover started")
-    holes: Literal["hazard", "unknown"] = Field("unknown", description="unknown cells walled in by known ground "
-                                                "(nothing came back from a place the sensor looked at): hazard, "
-                                                "or unknown like the unexplored outside")
+    holes: HolesPerSensor = Field(HolesPerSensor(), description="per sensor, unknown cells walled in by known ground "
+                                  "(nothing came back from a place the sensor looked at): hazard, or unknown like "
+                                  "the unexplored outside")
     min_hole_m2: float = Field(0.01, ge=0, description="smaller holes stay unknown")
     sticky_range_m: float = Field(2.5, ge=0, description="a hazard any cycle saw from this close stays, "
                                   "whatever a nearer look says")
@@ -150,7 +164,7 @@ def handout_border(layers: MapLayers, pose: RoverPose, blind_radius_m: float) ->
 def holes_as_hazards(layers: MapLayers, start: RoverPose, sensor: str, settings: NavigationSettings) -> MapLayers:
     """The map with its holes made hazards (navigation.toml holes), except within the sensor's
     blind ring round where the rover started mapping: no look could have seen that."""
-    if settings.holes == "unknown":
+    if settings.holes.of(sensor) == "unknown":
         return layers
     min_cells = max(1, math.ceil(settings.min_hole_m2 / layers.spec.cell ** 2))
     exempt = under_rover(layers.spec, start, settings.blind_radius_m.of(sensor))
