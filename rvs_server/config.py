@@ -103,6 +103,8 @@ def type_label(info: FieldInfo) -> str:
         return {int: "int", float: "float", str: "text"}[annotation]
     if isinstance(annotation, type) and issubclass(annotation, Path):
         return "path"
+    # A parametrised generic model (PerSensor[float]) is named by its generic class.
+    annotation = (getattr(annotation, "__pydantic_generic_metadata__", None) or {}).get("origin") or annotation
     return getattr(annotation, "__name__", str(annotation))
 
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 import csv
 import math
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Any, Generic, Literal, TypeVar
 
 import cv2
 import numpy as np
@@ -31,29 +31,19 @@ from ..toolbox.planning import (MapLayers, PlanningParams, blank_map_spanning, c
                                 drivable_prefix, enclosed_unknown, fuse_maps, plan_path, terrain_cost, with_hazards)
 from .grid_canvas import Canvas
 
-
-class PerSensor(BaseModel):
-    """A length for each mapping sensor, metres."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
-    tof: float = Field(..., ge=0)
-    stereo: float = Field(..., ge=0)
-
-    def of(self, sensor: str) -> float:
-        return getattr(self, sensor)
-
-
+T = TypeVar("T")
+Metres = Annotated[float, Field(ge=0)]
 HolePolicy = Literal["hazard", "unknown"]
 
 
-class HolesPerSensor(BaseModel):
-    """What unknown cells walled in by seen ground are, for each mapping sensor."""
+class PerSensor(BaseModel, Generic[T]):
+    """A setting for each mapping sensor."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
-    tof: HolePolicy = "unknown"
-    stereo: HolePolicy = "hazard"
+    tof: T
+    stereo: T
 
-    def of(self, sensor: str) -> HolePolicy:
+    def of(self, sensor: str) -> T:
         return getattr(self, sensor)
 
 
@@ -88,12 +78,13 @@ class NavigationSettings(Settings):
     turn_rate_deg_s: float = Field(20.0, gt=0, description="simulated rover turn rate")
     step_limit_m: float = Field(0.09, gt=0, description="navigate's maps call a step hazardous from this "
                                 "height: below the rover's limit by the sensors' height error")
-    blind_radius_m: PerSensor = Field(
-        PerSensor(tof=0.9, stereo=1.7), description="per sensor, the ring round the mast it cannot see: counts as seen "
-        "when the part of the path to hand out is cut, and is no hole where the rover started")
-    holes: HolesPerSensor = Field(HolesPerSensor(), description="per sensor, unknown cells walled in by known ground "
-                                  "(nothing came back from a place the sensor looked at): hazard, or unknown like "
-                                  "the unexplored outside")
+    blind_radius_m: PerSensor[Metres] = Field(
+        PerSensor[Metres](tof=0.9, stereo=1.7), description="per sensor, the ring round the mast it cannot see: "
+        "counts as seen when the part of the path to hand out is cut, and is no hole where the rover started")
+    holes: PerSensor[HolePolicy] = Field(
+        PerSensor[HolePolicy](tof="unknown", stereo="hazard"), description="per sensor, unknown cells walled in "
+        "by known ground (nothing came back from a place the sensor looked at): hazard, or unknown like the "
+        "unexplored outside")
     min_hole_m2: float = Field(0.01, ge=0, description="smaller holes stay unknown")
     sticky_range_m: float = Field(2.5, ge=0, description="a hazard any cycle saw from this close stays, "
                                   "whatever a nearer look says")
