@@ -174,14 +174,25 @@ def describe_validation_error(exc: ValidationError, model: type[BaseModel], wher
         text += f": {msg}"
         if err.get("type") == "extra_forbidden":
             text = f"{name_of(loc)}: unknown field"
-            allowed = ", ".join(name_of((n,)) for n in model.model_fields)
-            close = difflib.get_close_matches(str(loc[-1]), list(model.model_fields), n=1)
-            text += f" (did you mean {name_of((close[0],))}?)" if close else ""
+            owner, parent = _owner_at(model, loc)   # a nested table names its own fields
+            allowed = ", ".join(name_of((*parent, n)) for n in owner.model_fields)
+            close = difflib.get_close_matches(str(loc[-1]), list(owner.model_fields), n=1)
+            text += f" (did you mean {name_of((*parent, close[0]))}?)" if close else ""
             text += f"; allowed: {allowed}" if allowed else ""
         elif info is not None:
             text += f"; allowed: {describe_allowed(info)}"
         problems.append(text)
     return f"{where}: " + "; ".join(problems)
+
+
+def _owner_at(model: type[BaseModel], loc: tuple) -> tuple[type[BaseModel], tuple]:
+    """The model whose field loc's last part would be, and the path to it."""
+    for depth in range(len(loc) - 1, 0, -1):
+        info = _field_at(model, loc[:depth])
+        annotation = _unwrap_optional(info.annotation)[0] if info is not None else None
+        if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+            return annotation, tuple(loc[:depth])
+    return model, ()
 
 
 def _field_at(model: type[BaseModel], loc: tuple) -> FieldInfo | None:

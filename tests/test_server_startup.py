@@ -22,6 +22,9 @@ def start(tmp_path, *args: str, configs: dict[str, str] | None = None) -> subpro
     ("ptu.toml", "tolerance_deg = 0\n", ["ptu.toml", "field tolerance_deg", "0", "> 0 and <= 5"]),
     ("ptu.toml", "[move-ptu]\nspeed = 1000\n", ["ptu.toml [move-ptu]", "field speed", "1000", "<= 300"]),
     ("ptu.toml", "[move-ptu]\nsped = 10\n", ["ptu.toml [move-ptu]", "field sped", "unknown field"]),
+    ("navigation.toml", 'holes = { tof = "unknown", stero = "hazard" }\n',
+     ["navigation.toml", "field holes.stero", "unknown field", "did you mean field holes.stereo",
+      "allowed: field holes.tof, field holes.stereo"]),
     ("server.toml", "port = [\n", ["server.toml", "not valid TOML"]),
 ])
 def test_an_invalid_file_stops_start_up_naming_file_field_value_and_rule(tmp_path, name, text, words):
