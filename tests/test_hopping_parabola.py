@@ -51,14 +51,20 @@ def noisy_hop(seed: int, noise: float = 0.02, outliers: float = 0.1, frames: int
     """A hop in SfM coordinates with per-axis Gaussian noise (a fraction of the hop) and gross outliers."""
     rng = np.random.default_rng(seed)
     t, p, _ = true_hop(frames, elevation_deg)
-    p = p + rng.normal(0, noise, p.shape)
-    bad = rng.choice(np.arange(1, frames), int(round(outliers * frames)), replace=False)
-    direction = rng.normal(size=(len(bad), 3))
-    p[bad] += direction / np.linalg.norm(direction, axis=1)[:, None] * rng.uniform(0.1, 0.5, (len(bad), 1))
+    p, good = with_outliers(p + rng.normal(0, noise, p.shape), rng, int(round(outliers * frames)), 0.1, 0.5)
     sfm, scale, rotation = to_sfm(p, seed)
-    good = np.ones(frames, dtype=bool)
-    good[bad] = False
     return sfm, t, scale, rotation, good
+
+
+def with_outliers(p: np.ndarray, rng: np.random.Generator, count: int, low: float, high: float):
+    """p with `count` frames (never the first) moved low..high in random directions; (p, good mask)."""
+    p = p.copy()
+    bad = rng.choice(np.arange(1, len(p)), count, replace=False)
+    direction = rng.normal(size=(len(bad), 3))
+    p[bad] += direction / np.linalg.norm(direction, axis=1)[:, None] * rng.uniform(low, high, (len(bad), 1))
+    good = np.ones(len(p), dtype=bool)
+    good[bad] = False
+    return p, good
 
 
 def scale_bound(t: np.ndarray, noise: float) -> float:
@@ -201,13 +207,8 @@ def bent_long_hop(seed: int):
     extent = np.ptp(p, axis=0).max()
     u = t / t[-1]
     bend = 0.003 * extent * np.column_stack([np.sin(3 * np.pi * u + phase) for phase in rng.uniform(0, 2 * np.pi, 3)])
-    p = p + bend + rng.normal(0, 0.0003 * extent, p.shape)
-    bad = rng.choice(np.arange(1, len(t)), 10, replace=False)
-    direction = rng.normal(size=(len(bad), 3))
-    p[bad] += direction / np.linalg.norm(direction, axis=1)[:, None] * extent * rng.uniform(0.03, 0.1, (len(bad), 1))
+    p, good = with_outliers(p + bend + rng.normal(0, 0.0003 * extent, p.shape), rng, 10, 0.03 * extent, 0.1 * extent)
     sfm, scale, _ = to_sfm(p, seed)
-    good = np.ones(len(t), dtype=bool)
-    good[bad] = False
     return sfm, t, scale, good
 
 
