@@ -15,8 +15,8 @@ from hypothesis import strategies as st
 from rvs_server.toolbox.grid import GridSpec
 from rvs_server.toolbox.hopping_ballistics import (ballistic_positions, elevation_for_target, hop_range,
                                                    landing_error_ellipse, launch_to_target, speed_for_target)
-from rvs_server.toolbox.hopping_landing import (LandingParams, ellipse_safe_mask, ellipse_semi_axes, goal_map,
-                                                obstacle_mask, plan_landing, protrusion_map, swept_height,
+from rvs_server.toolbox.hopping_landing import (LandingParams, NoGroundError, ellipse_safe_mask, ellipse_semi_axes,
+                                                goal_map, obstacle_mask, plan_landing, protrusion_map, swept_height,
                                                 top_down_maps, trajectory_collides)
 from rvs_server.toolbox.hopping_plane import Plane
 
@@ -259,3 +259,12 @@ def test_no_safe_cell_is_reported_not_invented():
                         params=LandingParams(cell=0.04))
     assert not plan.found and plan.reason == "no_candidate" and not plan.safe.any()
     assert np.isnan(plan.target).all() and plan.launch is None
+
+
+def test_a_start_off_the_cloud_is_refused_by_name():
+    """A wrong scale puts the estimated touchdown metres away from the cloud: say so, don't plan on nothing."""
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(-2.0, 2.0, (5000, 2))
+    cloud = np.column_stack([xy, np.zeros(len(xy))])
+    with pytest.raises(NoGroundError, match=r"0 points within [\d.]+ m of the estimated touchdown \(40.00, 0.00\)"):
+        plan_landing(cloud, np.array([40.0, 0.0, 0.1]), goal_heading=0.0, params=LandingParams(cell=0.04))

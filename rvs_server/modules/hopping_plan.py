@@ -26,7 +26,7 @@ from ..jobs import JobContext
 from ..protocol import BadRequest, RvsError
 from ..rasters import write_geotiff, write_png
 from ..toolbox.geometry import apply
-from ..toolbox.hopping import LandingParams, LandingPlan, plan_landing
+from ..toolbox.hopping import LandingParams, LandingPlan, NoGroundError, plan_landing
 from .hopping_estimate import EstimateError, EstimateParams, HopEstimate, estimate_hop
 from .hopping_pictures import plan_pictures, trajectory_picture, truth_target_picture
 from .hopping_store import (HopObservation, cloud_of, load_observation, load_reconstruction, load_truth, read_ply,
@@ -78,8 +78,12 @@ def run_hop_plan(ctx: JobContext, cfg: Any, inputs: dict, settings: HoppingSetti
     ctx.progress(82, "landing target: obstacles, error ellipses, selection, collision check")
     goal_heading, goal_xy = _goal(cfg, estimate)
     with timed(timings, "plan"):
-        plan = plan_landing(estimate.result.cloud, estimate.touchdown, goal_heading, goal_xy,
-                            landing_params(settings), colours)
+        try:
+            plan = plan_landing(estimate.result.cloud, estimate.touchdown, goal_heading, goal_xy,
+                                landing_params(settings), colours)
+        except NoGroundError as exc:    # a wrong scale or flight puts the touchdown off the cloud
+            raise BadRequest(f"hop-plan: {inputs['hop']} not reconstructed well enough: {exc}; "
+                             f"product={product.name}", data={"product": product.name}) from None
     ctx.progress(90, f"writing {product.name}")
     with timed(timings, "write"):
         cloud_path = write_plan_product(ctx, product, observation, sfm, estimate, colours, plan, inputs, timings,

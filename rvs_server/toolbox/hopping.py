@@ -26,7 +26,7 @@ from .hopping_ballistics import (CHI2_2D_95, Launch, LandingEllipse, ballistic_p
 from .hopping_icp import (IcpRound, OverlapAlignment, align_with_overlap_elimination, common_bounds, crop_mask,
                           estimate_normals, horizontal_bounds, icp_point_to_plane, icp_point_to_point,
                           icp_yaw_translation, transform_change)
-from .hopping_landing import (LandingParams, LandingPlan, TopDown, clearance_map, ellipse_safe_mask, goal_map,
+from .hopping_landing import (LandingParams, LandingPlan, NoGroundError, TopDown, clearance_map, ellipse_safe_mask, goal_map,
                               ground_plane, known_mask, obstacle_mask, plan_landing, protrusion_map,
                               selection_score, swept_height, top_down_maps, trajectory_collides)
 from .hopping_parabola import (MOON_GRAVITY, FlightFit, centre_of_mass_positions, conic_axis_angle,
@@ -43,7 +43,7 @@ __all__ = [
     "OverlapAlignment", "IcpRound", "align_with_overlap_elimination", "horizontal_bounds", "common_bounds",
     "crop_mask", "estimate_normals", "icp_point_to_plane", "icp_point_to_point", "icp_yaw_translation",
     "transform_change",
-    "LandingParams", "LandingPlan", "TopDown", "plan_landing", "top_down_maps", "ground_plane", "protrusion_map",
+    "LandingParams", "LandingPlan", "NoGroundError", "TopDown", "plan_landing", "top_down_maps", "ground_plane", "protrusion_map",
     "known_mask", "obstacle_mask", "clearance_map", "goal_map", "ellipse_safe_mask", "selection_score",
     "swept_height", "trajectory_collides",
     "Launch", "LandingEllipse", "hop_range", "landing_error_ellipse", "launch_to_target", "speed_for_target",

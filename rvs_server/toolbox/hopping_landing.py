@@ -44,6 +44,10 @@ from .hopping_parabola import MOON_GRAVITY
 from .hopping_plane import Plane, ransac_plane
 
 
+class NoGroundError(ValueError):
+    """The cloud holds no ground around the start: the start (the estimated touchdown) or the cloud is wrong."""
+
+
 @dataclass(frozen=True)
 class LandingParams:
     cell: float = 0.025                    # grid cell, m (paper: 1.2 cm)
@@ -330,7 +334,8 @@ def plan_landing(points: np.ndarray, start: np.ndarray, goal_heading: float | No
     _, _, inside = spec.cell_of(points[:, 0], points[:, 1])
     points = points[inside]
     if len(points) < 3:
-        raise ValueError(f"no cloud around the start {start.tolist()}: {len(points)} points in the map")
+        raise NoGroundError(f"the dense cloud has {len(points)} points within {half:.1f} m of the estimated "
+                            f"touchdown ({start[0]:.2f}, {start[1]:.2f}): the two disagree")
     # Project the cloud to a top-down image.
     top = top_down_maps(points, spec, None if colours is None else np.asarray(colours)[inside])
     # RANSAC ground plane; protrusion above it makes obstacles (median filter, closing).
