@@ -74,6 +74,11 @@ class HoppingSettings(Settings):
                               "estimate (the clouds' far parts are too noisy to align)")
     icp_max_yaw_deg: float = Field(10.0, gt=0, le=45, description="ICP turning the cloud more is a false "
                                    "match (its turn is never applied: the sun sensor keeps the heading)")
+    icp_min_contrast: float = Field(1.1, ge=1, le=10, description="the position correction needs ground that "
+                                    "shows the shift: the height match's best rival (farther than "
+                                    "icp_distinct_m) must fit this many times worse than its best")
+    icp_distinct_m: float = Field(0.15, gt=0, le=2, description="shifts farther than this from the height "
+                                  "match's best are its rivals; ICP refines within this")
     # Landing target selection (toolbox/hopping_landing.py LandingParams).
     cell_m: float = Field(0.025, gt=0.005, le=0.5, description="cell of the top-down maps")
     obstacle_m: float = Field(0.08, gt=0, description="protrusion above the ground plane that is an obstacle")

@@ -7,8 +7,9 @@
                                        frame: SfM sees the launch's heading error, the sun sensor cannot
     process_hop(centres of mass, ...)  scale and gravity from the parabola (the accelerometer's gravity
                                        as the prior), the cloud into the world at the launch estimate
-    correct_position                   ICP against the previous hop's cloud (hopping_icp's crop loop)
-                                       around the launch estimate: its shift there, when plausible
+    correct_position                   the shift onto the previous hop's cloud around the launch estimate:
+                                       height maps matched over every plausible shift, then ICP
+                                       (hopping_icp's crop loop) from there; none where the ground is flat
     touchdown                          the fitted parabola followed down from the last frame to where
                                        the body's underside meets the ground the cloud shows there
 
@@ -24,6 +25,7 @@ import numpy as np
 
 from ..hop_sfm import HopReconstruction
 from ..toolbox.geometry import apply, compose, rigid, rotation_z
+from ..toolbox.height_match import match_height_maps
 from ..toolbox.hopping import (HopResult, align_with_overlap_elimination, centre_of_mass_positions, fit_flight,
                                 process_hop)
 from .hopping_store import HopObservation
@@ -42,6 +44,8 @@ class EstimateParams:
     icp_initial_distance: float   # how far the launch estimate may be off: ICP's first correspondence distance
     icp_crop: float               # the alignment uses the ground within this of the launch estimate
     icp_max_yaw_deg: float        # a larger turn is a false match
+    icp_min_contrast: float       # the height match's runner-up misfit / its best: less is ground too flat
+    icp_distinct: float           # m: shifts farther than this from the best are its rivals
     min_registered: float         # share of the frames SfM must register
     min_inliers: float            # share of the registered frames the parabola fit must keep
 
@@ -139,16 +143,17 @@ def corrected_hop(com_sfm, times, cloud_sfm, start, heading, previous_cloud, gra
 
 def correct_position(result: HopResult, previous_cloud: np.ndarray, start: np.ndarray,
                      params: EstimateParams) -> tuple[HopResult, dict]:
-    """ICP with the paper's crop loop (hopping_icp), on the ground within icp_crop_m of the launch estimate,
-    gravity held (yaw and translation), and only its shift at the launch estimate applied.
+    """The shift of this hop's cloud onto the previous hop's, on the ground within icp_crop_m of the launch
+    estimate: found by matching height maps over every shift within icp_initial_distance_m, refined by
+    ICP with the paper's crop loop (hopping_icp, gravity held: yaw and translation) started there.
 
-    Measured on simulated hop pairs (320x240 frames, 0.2-0.3 m bounces): on the whole clouds, whose far
-    parts are noisy, the alignment turned the cloud by 3-30 degrees and often moved it the wrong way
-    while passing its own checks; on the local crop it found the launch to 4-8 cm, but its turn was
-    still off by several degrees (even when started at the truth), where the sun sensor knows each
-    hop's heading to about a degree. So the heading stays the sun sensor's: the correction is the
-    shift ICP finds at the launch estimate. A turn beyond icp_max_yaw_deg or a shift beyond
-    icp_initial_distance_m marks a false match, which is not applied."""
+    Why not ICP alone: on the chain test's flat landing spot ICP started at the launch estimate stopped
+    1 cm from it for a true 19 cm, every check passed; the height match found 18-25 cm at every crop.
+    ICP is pulled off that by ground it cannot tell apart, so its answer is taken only within one cell
+    of the match. Why not a turn: on local crops ICP's turn was off by several degrees where the sun
+    sensor knows each hop's heading to about a degree, so the heading stays the sun sensor's.
+    Refused, and said why: ground too flat to show the shift (contrast under icp_min_contrast), or a
+    shift beyond icp_initial_distance_m."""
     def near(cloud: np.ndarray) -> np.ndarray:
         return cloud[np.hypot(*(cloud[:, :2] - start[:2]).T) < params.icp_crop]
 
@@ -157,25 +162,41 @@ def correct_position(result: HopResult, previous_cloud: np.ndarray, start: np.nd
         return result, {"used": False, "reason": f"too little ground within {params.icp_crop:g} m of the launch "
                         f"estimate in both clouds ({len(source)} and {len(target)} points)"}
     try:
-        alignment = align_with_overlap_elimination(source, target, voxel=params.icp_voxel, dof="yaw",
-                                                   initial_max_distance=params.icp_initial_distance)
-    except ValueError as exc:   # no overlap, too few points in it
-        return result, {"used": False, "reason": f"ICP failed: {exc}"}
-    shift = apply(alignment.transform, start[None])[0] - start
-    yaw = math.degrees(math.atan2(alignment.transform[1, 0], alignment.transform[0, 0]))
-    summary = {"fitness": alignment.fitness, "inlier_rmse_m": alignment.inlier_rmse, "rounds": len(alignment.rounds),
-               "checks": alignment.checks, "shift_m": shift.tolist(), "shift_horizontal_m": float(np.hypot(*shift[:2])),
-               "icp_yaw_deg": yaw, "crop_m": params.icp_crop, "source_points": len(source),
-               "target_points": len(target), "applied": "the shift at the launch estimate; heading kept"}
-    problems = [k for k, ok in alignment.checks.items() if not ok]
-    if abs(yaw) > params.icp_max_yaw_deg:
-        problems.append(f"turn {yaw:.1f} deg > {params.icp_max_yaw_deg:g}")
+        match = match_height_maps(source, target, start[:2], params.icp_crop, params.icp_initial_distance,
+                                  params.icp_voxel, params.icp_distinct)
+    except ValueError as exc:   # too little shared ground
+        return result, {"used": False, "reason": f"height match failed: {exc}"}
+    summary = {"crop_m": params.icp_crop, "source_points": len(source), "target_points": len(target),
+               "match": {"shift_m": [*match.shift.tolist(), match.vertical], "misfit_m": match.misfit,
+                         "runner_up_m": match.runner_up, "contrast": match.contrast, "cells": match.overlap}}
+    if match.contrast < params.icp_min_contrast:
+        return result, {"used": False, "reason": f"the ground within {params.icp_crop:g} m does not show the shift: "
+                        f"the best shift fits to {100 * match.misfit:.1f} cm, the best one more than "
+                        f"{params.icp_distinct:g} m from it to {100 * match.runner_up:.1f} cm (contrast "
+                        f"{match.contrast:.2f} < {params.icp_min_contrast:g}: hopping.toml icp_min_contrast)",
+                        **summary}
+    matched = np.array([*match.shift, match.vertical])
+    shift, how = matched, "the height match's shift (ICP left it)"
+    try:
+        alignment = align_with_overlap_elimination(source, target, init=rigid(None, matched), voxel=params.icp_voxel,
+                                                   dof="yaw", initial_max_distance=params.icp_distinct)
+        refined = apply(alignment.transform, start[None])[0] - start
+        yaw = math.degrees(math.atan2(alignment.transform[1, 0], alignment.transform[0, 0]))
+        summary["icp"] = {"shift_m": refined.tolist(), "yaw_deg": yaw, "fitness": alignment.fitness,
+                          "inlier_rmse_m": alignment.inlier_rmse, "rounds": len(alignment.rounds),
+                          "checks": alignment.checks}
+        if alignment.good and abs(yaw) <= params.icp_max_yaw_deg and \
+                np.hypot(*(refined - matched)[:2]) <= params.icp_voxel:
+            shift, how = refined, "ICP's shift, started at the height match's"
+    except ValueError as exc:   # too few points in the crop loop's bounds
+        summary["icp"] = {"failed": str(exc)}
     if np.linalg.norm(shift) > params.icp_initial_distance:
-        problems.append(f"shift {np.linalg.norm(shift):.2f} m > {params.icp_initial_distance:g}")
-    if problems:
-        return result, {"used": False, "reason": f"alignment not trusted: {', '.join(problems)}", **summary}
+        return result, {"used": False, "reason": f"shift {np.linalg.norm(shift):.2f} m > "
+                        f"{params.icp_initial_distance:g} m (hopping.toml icp_initial_distance_m)", **summary}
+    summary.update({"shift_m": shift.tolist(), "shift_horizontal_m": float(np.hypot(*shift[:2])),
+                    "applied": f"{how} at the launch estimate; heading kept"})
     correction = rigid(None, shift)
-    corrected = replace(result, correction=correction, alignment=alignment, cloud=result.cloud + shift,
+    corrected = replace(result, correction=correction, cloud=result.cloud + shift,
                         launch_point=result.launch_point + shift, landing_point=result.landing_point + shift)
     return corrected, {"used": True, **summary}
 

@@ -137,7 +137,8 @@ def _estimate(observation, sfm, cloud_sfm, inputs, previous: str | None, setting
     previous_cloud = cloud_of(read_ply(Path(previous)))[0] if previous and Path(previous).exists() else None
     params = EstimateParams(gravity=settings.gravity_mps2, icp_voxel=settings.icp_voxel_m,
                             icp_initial_distance=settings.icp_initial_distance_m, icp_crop=settings.icp_crop_m,
-                            icp_max_yaw_deg=settings.icp_max_yaw_deg, min_registered=settings.min_registered,
+                            icp_max_yaw_deg=settings.icp_max_yaw_deg, icp_min_contrast=settings.icp_min_contrast,
+                            icp_distinct=settings.icp_distinct_m, min_registered=settings.min_registered,
                             min_inliers=settings.min_fit_inliers)
     try:
         return estimate_hop(observation, sfm, cloud_sfm, np.asarray(inputs["launch"]), previous_cloud, params)

@@ -158,7 +158,8 @@ def chain_errors(run: dict) -> list[dict]:
                "with_icp_pct": 100 * float(np.linalg.norm(with_icp - true)) / distance,
                "without_icp_pct": 100 * float(np.linalg.norm(without - true)) / distance,
                "bounce_m": hop["comparison"]["next_launch"]["bounce_horizontal_m"],
-               "icp_accepted": bool(hop["icp"].get("accepted", False)) if hop["icp"] else None}
+               "icp_used": bool(hop["icp"].get("used", False)) if hop["icp"] else None,
+               **correction_errors(hop)}
         target = hop["comparison"].get("target")
         if target is not None:
             row["target_clear"] = target["footprint_clear"]
@@ -168,6 +169,18 @@ def chain_errors(run: dict) -> list[dict]:
             row["next_touchdown_from_target_m"] = float(np.linalg.norm(landed - np.array(hop["target_m"][:2])))
         rows.append(row)
     return rows
+
+
+def correction_errors(hop: dict) -> dict:
+    """How far each position correction's horizontal shift fell from the one the truth needed (m): the
+    height match's, ICP's from it, and the one applied (none: the launch error itself)."""
+    before = hop["comparison"]["launch_before_icp"]
+    needed = np.array(before["true_m"][:2]) - np.array(before["estimated_m"][:2])
+    icp = hop.get("icp") or {}
+    shifts = {"match": icp.get("match", {}).get("shift_m"), "icp": icp.get("icp", {}).get("shift_m"),
+              "applied": icp.get("shift_m") if icp.get("used") else [0.0, 0.0]}
+    return {f"{name}_error_m": float(np.linalg.norm(np.array(shift[:2]) - needed))
+            for name, shift in shifts.items() if shift is not None} | {"needed_m": float(np.linalg.norm(needed))}
 
 
 # ------------------------------------------------------------------------------------ singles
@@ -245,6 +258,15 @@ def report(out: Path) -> str:
                      f"{np.mean([r['without_icp_pct'] for r in every]):.2f} %, max "
                      f"{np.max([r['without_icp_pct'] for r in every]):.2f} %; bounces "
                      f"{np.mean([r['bounce_m'] for r in every]):.2f} m mean")
+        corrected = [r for r in every if "needed_m" in r and r["hop"] > 1]
+        columns = {"none": "needed_m", "height match": "match_error_m", "ICP from it": "icp_error_m",
+                   "applied": "applied_error_m"}
+        columns = {name: [r[key] for r in corrected if key in r] for name, key in columns.items()}
+        if corrected:
+            lines.append(f"  launch after the correction, horizontal error (median, max cm, hops), used on "
+                         f"{sum(bool(r['icp_used']) for r in corrected)}/{len(corrected)}: " + "; ".join(
+                             f"{name} {100 * np.median(v):.1f}, {100 * np.max(v):.1f}, {len(v)}"
+                             for name, v in columns.items() if v))
         targets = [r for r in every if "target_clear" in r]
         missed = [r["next_touchdown_from_target_m"] for r in every if "next_touchdown_from_target_m" in r]
         lines.append(f"  targets: {sum(r['target_clear'] for r in targets)}/{len(targets)} clear of every true "
