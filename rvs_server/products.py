@@ -14,7 +14,7 @@ import platform
 import re
 import time
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Callable, Mapping
 
 import numpy as np
 
@@ -142,8 +142,9 @@ class Products:
         path.mkdir(parents=True, exist_ok=True)
         return Product(path, name, command, arguments, config, job)
 
-    def latest(self, command_pattern: str) -> Product | None:
-        """The most recent complete product made by a command matching the pattern."""
+    def latest(self, command_pattern: str, where: Callable[[dict], bool] | None = None) -> Product | None:
+        """The most recent complete product made by a command matching the pattern (and whose manifest
+        satisfies `where`)."""
         pattern = re.compile(command_pattern)
         best: tuple[float, Path] | None = None
         for manifest in self.root.glob("*/product.json"):
@@ -151,7 +152,8 @@ class Products:
                 data = json.loads(manifest.read_text())
             except (OSError, ValueError):
                 continue
-            if data.get("status") == "complete" and pattern.fullmatch(data.get("command", "")):
+            if data.get("status") == "complete" and pattern.fullmatch(data.get("command", "")) and \
+                    (where is None or where(data)):
                 mtime = manifest.stat().st_mtime
                 if best is None or mtime > best[0]:
                     best = (mtime, manifest.parent)

@@ -62,7 +62,10 @@ def test_navigate_arrives_without_touching_a_rock(server, world):
         tag = "nav"
         c.send(f"@{tag} navigate --to {goal[0]},{goal[1]} --tolerance 0.3")
         reply, progress = c.reply(tag, timeout=600)
+        # plan-path then plans on what navigate saw last, not on an older map (or none).
+        back = pairs(c.command("plan-path --to 0,0", timeout=120))
     assert " OK " in reply, reply
+    assert back["map"].startswith(product_of(server, reply).name + "/cycle-"), back
     fields = pairs(reply)
     assert int(fields["cycles"]) >= 2 and float(fields["remaining"]) <= 0.3
     # PROGRESS names the cycle and what it does.

@@ -111,16 +111,33 @@ class PoseConfig(CommandConfig):
 LAST_MAP = {"tof": "dem-(full|update)-tof", "stereo": "dem-(full|update)"}
 
 
-def local_map(server: Any, sensor: str) -> tuple[MapLayers, Any, dict[str, np.ndarray]]:
-    """The latest hazard map of the sensor as planning layers, its product, and its ortho-image."""
-    product = server.products.latest(LAST_MAP[sensor])
-    if product is None:
-        raise WrongMode(f"no {sensor} map yet: run {'dem-full-tof' if sensor == 'tof' else 'dem-full'} first")
+def local_map(server: Any, sensor: str) -> tuple[MapLayers, str, Path, dict[str, np.ndarray]]:
+    """The latest hazard map of the sensor as planning layers, its name and folder, and its ortho-image."""
+    name, folder = latest_map_folder(server, sensor)
     settings: NavigationSettings = server.module_configs["navigation"].settings
-    layers = planning_layers(product.path, settings, server.pose_estimate)
-    ortho = product.path / "ortho.tif"
+    layers = planning_layers(folder, settings, server.pose_estimate)
+    ortho = folder / "ortho.tif"
     extra = {"ortho": read_geotiff(ortho)[0] if ortho.exists() else np.full(layers.spec.shape, np.nan)}
-    return layers, product, extra
+    return layers, name, folder, extra
+
+
+def latest_map_folder(server: Any, sensor: str) -> tuple[str, Path]:
+    """The newer of the sensor's last dem-full/dem-update map and the last cycle's map of its last navigate
+    run (a user who has just navigated expects plan-path to see what navigate saw)."""
+    candidates = []
+    mapped = server.products.latest(LAST_MAP[sensor])
+    if mapped is not None:
+        candidates.append((mapped.path / "product.json", mapped.name, mapped.path))
+    navigated = server.products.latest("navigate", where=lambda data: data.get("arguments", {}).get("sensor") == sensor)
+    cycles = sorted(navigated.path.glob("cycle-*/hazard.tif")) if navigated is not None else []
+    if cycles:
+        candidates.append((navigated.path / "product.json", f"{navigated.name}/{cycles[-1].parent.name}",
+                           cycles[-1].parent))
+    if not candidates:
+        raise WrongMode(f"no {sensor} map yet: run {'dem-full-tof' if sensor == 'tof' else 'dem-full'} "
+                        f"or navigate --sensor {sensor} first")
+    _, name, folder = max(candidates, key=lambda c: c[0].stat().st_mtime)
+    return name, folder
 
 
 def planning_layers(folder: Path, settings: NavigationSettings, pose: RoverPose) -> MapLayers:
@@ -207,7 +224,7 @@ def plan_path_command(ctx: JobContext, cfg: PlanPathConfig) -> dict[str, Any]:
     pose = server.pose_estimate
     start = cfg.from_ or (pose.x, pose.y)
     ctx.progress(10, f"reading the latest {cfg.sensor} map")
-    local, source, extra = local_map(server, cfg.sensor)
+    local, source, folder, extra = local_map(server, cfg.sensor)
     fused = fuse_maps(blank_map_spanning(start, cfg.to, settings.global_cell_m, settings.global_margin_m, [local]),
                       [local])
     fused = holes_as_hazards(fused, pose, cfg.sensor, settings)
@@ -215,7 +232,7 @@ def plan_path_command(ctx: JobContext, cfg: PlanPathConfig) -> dict[str, Any]:
     ctx.progress(30, "planning")
     plan = plan_path(fused, start, cfg.to, params)
     product = ctx.product(cfg, name=cfg.output)
-    product.note("inputs", [{"map": source.name, "path": str(source.path)}])
+    product.note("inputs", [{"map": source, "path": str(folder)}])
     # On the fused grid: the local map's own grid may not even reach the rover.
     border = handout_border(fused, pose, settings.blind_radius_m.of(cfg.sensor))
     drivable = drivable_prefix(plan.waypoints, fused.spec, border, settings.border_margin_m) if plan.found else None
@@ -227,7 +244,7 @@ def plan_path_command(ctx: JobContext, cfg: PlanPathConfig) -> dict[str, Any]:
                          data={"product": product.name, "reason": plan.reason})
     return {**result, "waypoints": len(plan.waypoints), "drivable": len(drivable.waypoints),
             "complete": int(drivable.complete), "length": f"{plan.length_m:.2f}", "cost": f"{plan.cost:.3f}",
-            "map": source.name}
+            "map": source}
 
 
 def write_plan(product: Any, fused: MapLayers, plan: Any, drivable: Any, local: MapLayers, ortho: np.ndarray,
