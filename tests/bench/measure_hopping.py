@@ -120,18 +120,20 @@ def chain(seed: int, out: Path, hops: int, size: float, cover: float, sim_speed:
     server = start_server(root, seed, size, cover, f"sfm_first_octave = {octave}\n" if octave is not None else "")
     products = root / "data" / "products"
     heading = float(np.random.default_rng([seed, 1]).uniform(-180, 180))
-    records = []
+    records, stopped = [], None
     try:
         with server.connect(timeout=1800) as client:
             hop = f"hop --speed {speed_for(1.0, 60):.4f} --elevation 60 --heading {heading:.2f}"
             for number in range(1, hops + 1):
                 record = hop_and_plan(client, products, hop, f"hop-plan --goal-heading {heading:.2f}")
-                if "plan_error" in record:
-                    raise RuntimeError(f"chain {seed} hop {number}: {record['plan_error']}")
+                if "plan_error" in record:     # the hops so far still count; the chain cannot go on
+                    stopped = f"hop {number}: {record['plan_error']}"
+                    break
                 records.append(record)
                 print(f"chain {seed} hop {number}: {record['plan']} {record['seconds']:.0f} s", flush=True)
                 if record["launch"] is None:
-                    raise RuntimeError(f"chain {seed}: no target after hop {number}: {record['reply']}")
+                    stopped = f"no target after hop {number}: {record['reply']}"
+                    break
                 launch = record["launch"]
                 hop = (f"hop --speed {launch['speed_mps']:.4f} --elevation {launch['elevation_deg']:.3f} "
                        f"--heading {launch['heading_deg']:.3f}")
@@ -139,8 +141,10 @@ def chain(seed: int, out: Path, hops: int, size: float, cover: float, sim_speed:
             memory = peak_memory_mib(server)
     finally:
         server.stop()
+    if stopped:
+        print(f"chain {seed} stopped: {stopped}", flush=True)
     return {"kind": "chain", "seed": seed, "heading_deg": heading, "hops": records, "peak_memory_mib": memory,
-            "hop_map": str(products / hop_map) if hop_map else None}
+            "hop_map": str(products / hop_map) if hop_map else None, "stopped": stopped}
 
 
 def chain_errors(run: dict) -> list[dict]:
@@ -243,7 +247,8 @@ def report(out: Path) -> str:
     lines = []
     chains = [r for r in runs if r["kind"] == "chain"]
     if chains:
-        lines.append(f"chains: {len(chains)} scenes of {len(chains[0]['hops'])} hops; {PAPER_TABLE_1}")
+        lines.append(f"chains: {len(chains)} scenes, {sum(len(r['hops']) for r in chains)} hops; {PAPER_TABLE_1}")
+        lines.extend(f"  chain {r['seed']} stopped: {r['stopped']}" for r in chains if r.get("stopped"))
         table = [chain_errors(r) for r in chains]
         lines.append("  hop  distance  with ICP %  (per scene)                    without ICP %  (per scene)")
         for k in range(max(len(t) for t in table)):
