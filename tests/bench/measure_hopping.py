@@ -131,6 +131,8 @@ def chain(seed: int, out: Path, hops: int, size: float, cover: float, sim_speed:
                     break
                 records.append(record)
                 print(f"chain {seed} hop {number}: {record['plan']} {record['seconds']:.0f} s", flush=True)
+                if number == hops:              # the last plan's target is for a hop not taken
+                    break
                 if record["launch"] is None:
                     stopped = f"no target after hop {number}: {record['reply']}"
                     break
