@@ -42,6 +42,8 @@ class MappingSettings(Settings):
     max_reach_cells: float = Field(3.0, ge=0, le=50)
     slope_limit_deg: float = Field(20.0, gt=0, lt=90)
     step_limit: float = Field(0.10, gt=0)
+    tof_step_min_cells: int = Field(2, ge=1, le=25, description="a TOF step counts when this many cells "
+                                    "within 0.1 m exceed the limit (fewer scale it down: noise)")
     roughness_limit: float = Field(0.04, gt=0)
     truth_step: float = Field(0.10, gt=0, description="step height of the truth obstacle grid in products")
 
