@@ -82,7 +82,8 @@ class HoppingSettings(Settings):
     # Landing target selection (toolbox/hopping_landing.py LandingParams).
     cell_m: float = Field(0.025, gt=0.005, le=0.5, description="cell of the top-down maps")
     obstacle_m: float = Field(0.08, gt=0, description="protrusion above the ground plane that is an obstacle")
-    min_hop_m: float = Field(0.5, gt=0, description="shortest hop the planner proposes")
+    min_hop_m: float = Field(0.8, gt=0, description="shortest hop the planner proposes (shorter ones, under "
+                             "40 frames, were reconstructed too poorly to fit: configs/hopping.toml)")
     max_hop_m: float = Field(2.0, gt=0, description="longest hop the planner proposes")
     elevation_deg: float = Field(60.0, ge=10, le=80, description="launch elevation of the planned hops")
     sigma_speed_mps: float = Field(0.05, ge=0, description="launch errors, 1 sigma, for the error ellipse")
