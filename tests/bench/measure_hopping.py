@@ -152,6 +152,8 @@ def chain(seed: int, out: Path, hops: int, size: float, cover: float, sim_speed:
 def chain_errors(run: dict) -> list[dict]:
     """Per hop: touchdown error with and without ICP as a percentage of the true distance from the start."""
     hops = run["hops"]
+    if not hops:                 # stopped at its first hop
+        return []
     start = np.array(hops[0]["truth"]["launch"]["centre_m"][:2])
     without = start.copy()
     rows = []
