@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from rvs_server.toolbox.grid import GridSpec
 from rvs_server.toolbox.height_match import height_grid, match_height_maps
 
 
@@ -60,7 +61,7 @@ def test_the_cost_surface_has_its_minimum_at_the_shift_and_rises_around_it():
 
 def test_height_grid_known_answer():
     points = np.array([[0.01, 0.01, 1.0], [0.02, 0.03, 3.0], [0.11, 0.01, 5.0], [0.5, 0.5, 9.0]])
-    grid = height_grid(points, corner=np.zeros(2), cells=3, cell=0.1)
+    grid = height_grid(points, GridSpec(origin_x=0.0, origin_y=0.0, cell=0.1, rows=3, cols=3))
     assert grid[0, 0] == 2.0 and grid[0, 1] == 5.0                 # [row = y, col = x]; mean per cell
     assert np.isnan(grid).sum() == 7                               # the far point is outside
 

@@ -18,6 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .grid import GridSpec
+
 
 @dataclass(frozen=True)
 class HeightMatch:
@@ -36,16 +38,15 @@ class HeightMatch:
         return self.runner_up / max(self.misfit, 1e-9)
 
 
-def height_grid(points: np.ndarray, corner: np.ndarray, cells: int, cell: float) -> np.ndarray:
-    """(cells, cells) mean height per cell [row = y, col = x] from the corner (x, y) up; NaN where empty."""
+def height_grid(points: np.ndarray, spec: GridSpec) -> np.ndarray:
+    """Mean height per cell of the grid (rows northwards); NaN where empty."""
     points = np.asarray(points, dtype=np.float64)
-    ij = np.floor((points[:, :2] - np.asarray(corner, dtype=np.float64)) / cell).astype(np.int64)
-    inside = np.all((ij >= 0) & (ij < cells), axis=1)
-    flat = ij[inside, 1] * cells + ij[inside, 0]
-    total = np.bincount(flat, weights=points[inside, 2], minlength=cells * cells)
-    count = np.bincount(flat, minlength=cells * cells)
+    row, col, inside = spec.cell_of(points[:, 0], points[:, 1])
+    flat = (row * spec.cols + col)[inside]
+    total = np.bincount(flat, weights=points[inside, 2], minlength=spec.rows * spec.cols)
+    count = np.bincount(flat, minlength=spec.rows * spec.cols)
     with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(count > 0, total / count, np.nan).reshape(cells, cells)
+        return np.where(count > 0, total / count, np.nan).reshape(spec.shape)
 
 
 def match_height_maps(source: np.ndarray, target: np.ndarray, centre: np.ndarray, radius: float, search: float,
@@ -59,9 +60,10 @@ def match_height_maps(source: np.ndarray, target: np.ndarray, centre: np.ndarray
                          f"radius={radius}, search={search}, distinct={distinct}")
     steps, cells = int(round(search / cell)), int(round(2 * radius / cell))
     corner = np.asarray(centre, dtype=np.float64)[:2] - cells * cell / 2
-    fixed = height_grid(target, corner, cells, cell)
+    fixed = height_grid(target, GridSpec(corner[0], corner[1], cell, cells, cells))
     # The source on a grid `steps` cells wider each side: each shift is a window of it.
-    moving = height_grid(source, corner - steps * cell, cells + 2 * steps, cell)
+    wider = cells + 2 * steps
+    moving = height_grid(source, GridSpec(corner[0] - steps * cell, corner[1] - steps * cell, cell, wider, wider))
     filled = np.isfinite(fixed)
     if filled.sum() < 10:
         raise ValueError(f"the target has {int(filled.sum())} filled cells within {radius:g} m: too few to match")
