@@ -142,9 +142,10 @@ class Products:
         path.mkdir(parents=True, exist_ok=True)
         return Product(path, name, command, arguments, config, job)
 
-    def latest(self, command_pattern: str, where: Callable[[dict], bool] | None = None) -> Product | None:
-        """The most recent complete product made by a command matching the pattern (and whose manifest
-        satisfies `where`)."""
+    def latest(self, command_pattern: str, where: Callable[[dict], bool] | None = None,
+               statuses: tuple[str, ...] = ("complete",)) -> Product | None:
+        """The most recent product in one of `statuses` made by a command matching the pattern (and whose
+        manifest satisfies `where`)."""
         pattern = re.compile(command_pattern)
         best: tuple[float, Path] | None = None
         for manifest in self.root.glob("*/product.json"):
@@ -152,7 +153,7 @@ class Products:
                 data = json.loads(manifest.read_text())
             except (OSError, ValueError):
                 continue
-            if data.get("status") == "complete" and pattern.fullmatch(data.get("command", "")) and \
+            if data.get("status") in statuses and pattern.fullmatch(data.get("command", "")) and \
                     (where is None or where(data)):
                 mtime = manifest.stat().st_mtime
                 if best is None or mtime > best[0]:

@@ -112,8 +112,11 @@ def test_a_goal_on_a_rock_is_refused_with_the_pictures(server, world):
     goal = rock_goal(world)
     with server.connect() as c:
         reply = c.command(f"navigate --to {goal[0]},{goal[1]} --tolerance 0.2", timeout=600)
+        # The refused run's maps are whole: plan-path plans on them.
+        back = pairs(c.command("plan-path --to 0,0", timeout=120))
     assert "ERR 400 bad-request navigate stopped: goal_blocked" in reply, reply
     product = product_of(server, reply)
+    assert back["map"].startswith(product.name + "/cycle-"), back
     traverse = json.loads((product / "traverse.json").read_text())
     assert traverse["outcome"] == "goal_blocked" and (product / "overview.png").exists()
     assert (product / "cycle-01" / "plan.png").exists()

@@ -123,12 +123,16 @@ def local_map(server: Any, sensor: str) -> tuple[MapLayers, str, Path, dict[str,
 
 def latest_map_folder(server: Any, sensor: str) -> tuple[str, Path]:
     """The newer of the sensor's last dem-full/dem-update map and the last cycle's map of its last navigate
-    run (a user who has just navigated expects plan-path to see what navigate saw)."""
+    run (a user who has just navigated expects plan-path to see what navigate saw), refused runs included:
+    their maps are whole, only the traverse stopped."""
     candidates = []
     mapped = server.products.latest(LAST_MAP[sensor])
     if mapped is not None:
         candidates.append((mapped.path / "product.json", mapped.name, mapped.path))
-    navigated = server.products.latest("navigate", where=lambda data: data.get("arguments", {}).get("sensor") == sensor)
+    def same_sensor(data: dict) -> bool:
+        return data.get("arguments", {}).get("sensor") == sensor
+
+    navigated = server.products.latest("navigate", where=same_sensor, statuses=("complete", "failed"))
     cycles = sorted(navigated.path.glob("cycle-*/hazard.tif")) if navigated is not None else []
     if cycles:
         candidates.append((navigated.path / "product.json", f"{navigated.name}/{cycles[-1].parent.name}",
