@@ -8,9 +8,18 @@ Not in toolbox/: COLMAP works through a database and image files in a working fo
 
 `reconstruct_hop` is the paper's COLMAP pipeline with the camera's calibration held fixed: SIFT
 features, sequential matching (the frames are a video: each frame against its next few, which is
-what makes it fast), incremental mapping (PnP registration, triangulation, bundle adjustment). Its
-output is in COLMAP's own frame: arbitrary origin, axes and scale, which the parabola fit
-(hopping_parabola) turns metric.
+what makes it fast), then the mapping. Its output is in COLMAP's own frame: arbitrary origin, axes
+and scale, which the parabola fit (hopping_parabola) turns metric.
+
+The mapping is global by default (GLOMAP, in pycolmap as `global_mapping`): every frame's rotation
+from all pairwise rotations at once (rotation averaging), then every position and point at once,
+then bundle adjustment. The paper's incremental mapping (PnP registration one frame at a time) is
+kept as an option. Why: a hop's first frames see the near ground from 0.4 m, rushing past, with
+short tracks; incremental mapping reaches them last, at the end of a chain of registrations, and
+their scale drifts along it. On the stored hops of the chain and single-hop campaigns it bent about
+one hop in seven (the first third's scale 1.2 to 3.6 times the flight's, the parabola fit then
+refused the hop), at random: another RANSAC seed in the pair verification could bend or mend the
+same hop. Global positioning has no chain to drift along.
 
 `densify` replaces COLMAP's PatchMatch MVS, which pycolmap runs only with CUDA ("Dense stereo
 reconstruction requires CUDA or HIP"). Why two-view SGBM on chosen pairs:
@@ -54,10 +63,11 @@ from .toolbox.geometry import Intrinsics
 from .toolbox.stereo import Rectification, SgbmConfig, stereo_points
 
 __all__ = ["SfmConfig", "HopReconstruction", "reconstruct_hop", "as_intrinsics", "colmap_camera",
-           "DenseConfig", "StereoPair", "densify", "scene_depths", "choose_pairs", "pair_rectification",
+           "MAPPERS", "DenseConfig", "StereoPair", "densify", "scene_depths", "choose_pairs", "pair_rectification",
            "consistent_points", "voxel_average", "similarity_umeyama"]
 
 IMAGE_DIGITS = 4
+MAPPERS = ("global", "incremental")
 
 
 # ------------------------------------------------------------------------------------------- SfM
@@ -68,15 +78,20 @@ class SfmConfig:
     baselines tie the whole flight together and keep the scale from drifting along it)."""
 
     max_features: int = 4096
-    # SIFT's first octave: -1 doubles the image first (COLMAP's default; finds more features on small
-    # images), 0 starts at full size (about 3x faster extraction at 640x480 and up).
-    first_octave: int = -1
+    # SIFT's first octave: 0 starts at full size; -1 doubles the image first (COLMAP's default: more
+    # features on small images, but about 4x slower at 640x480, and the hops need no more).
+    first_octave: int = 0
     overlap: int = 5
     quadratic_overlap: bool = True
     min_inliers: int = 15              # verified matches for a pair to count
-    init_min_tri_angle_deg: float = 16.0  # COLMAP's default for the first pair; quadratic overlap finds one
+    init_min_tri_angle_deg: float = 16.0  # incremental: COLMAP's default for the first pair
+    mapper: str = "global"             # "global" (GLOMAP) or "incremental" (COLMAP's): see the module docstring
     num_threads: int = -1
     seed: int = 0
+
+    def __post_init__(self):
+        if self.mapper not in MAPPERS:
+            raise ValueError(f"mapper must be one of {', '.join(MAPPERS)}, got {self.mapper!r}")
 
 
 @dataclass(frozen=True)
@@ -151,9 +166,10 @@ def reconstruct_hop(frames: np.ndarray, timestamps: np.ndarray, intrinsics, work
     # Sequential matching: the next few frames (and 2^k ahead), geometrically verified.
     with timed(timings, "matching"):
         match_sequential(database, config)
-    # Incremental mapping: PnP registration, triangulation, bundle adjustment; intrinsics fixed.
+    # Global (rotation averaging, global positioning) or incremental mapping; intrinsics fixed.
     with timed(timings, "mapping"):
-        models = incremental_mapping(database, image_dir, sparse_dir, config)
+        mapping = global_mapping if config.mapper == "global" else incremental_mapping
+        models = mapping(database, image_dir, sparse_dir, config)
     # The largest model, frame by frame.
     result = from_colmap(largest(models), len(frames), timestamps, len(models))
     timings["total"] = sum(timings.values())
@@ -266,6 +282,31 @@ def mapping_options(config: SfmConfig) -> pycolmap.IncrementalPipelineOptions:
 
 def incremental_mapping(database: Path, image_dir: Path, sparse_dir: Path, config: SfmConfig) -> dict:
     return pycolmap.incremental_mapping(database, image_dir, sparse_dir, options=mapping_options(config))
+
+
+def global_mapping_options(config: SfmConfig) -> pycolmap.GlobalPipelineOptions:
+    """GLOMAP with the calibration held (as in mapping_options) and every random choice seeded."""
+    options = pycolmap.GlobalPipelineOptions()
+    options.min_num_matches = config.min_inliers
+    options.num_threads = config.num_threads
+    options.random_seed = config.seed
+    mapper = options.mapper
+    mapper.num_threads = config.num_threads
+    mapper.random_seed = config.seed
+    mapper.rotation_averaging.random_seed = config.seed
+    mapper.global_positioning.random_seed = config.seed
+    mapper.global_positioning.use_gpu = False
+    mapper.retriangulation.random_seed = config.seed
+    adjustment = mapper.bundle_adjustment
+    adjustment.refine_focal_length = False
+    adjustment.refine_principal_point = False
+    adjustment.refine_extra_params = False
+    adjustment.ceres.use_gpu = False
+    return options
+
+
+def global_mapping(database: Path, image_dir: Path, sparse_dir: Path, config: SfmConfig) -> dict:
+    return pycolmap.global_mapping(database, image_dir, sparse_dir, options=global_mapping_options(config))
 
 
 def largest(models: dict) -> pycolmap.Reconstruction | None:

@@ -81,6 +81,19 @@ def test_sfm_registers_the_hop_and_finds_its_trajectory(hop, sfm, to_world):
     assert {"features", "matching", "mapping", "total"} <= sfm.timings.keys()
 
 
+def test_the_incremental_mapper_finds_the_same_trajectory(hop, sfm, tmp_path):
+    """The paper's incremental mapping stays available (hopping.toml sfm_mapper) and agrees on this hop."""
+    config = hop_sfm.SfmConfig(mapper="incremental")
+    incremental = hop_sfm.reconstruct_hop(hop.frames, hop.timestamps, hop.camera, tmp_path, config)
+    both = sfm.registered & incremental.registered
+    assert both.mean() >= 0.8
+    scale, rotation, translation = hop_sfm.similarity_umeyama(incremental.camera_centres[both],
+                                                              sfm.camera_centres[both])
+    moved = scale * incremental.camera_centres[both] @ rotation.T + translation
+    extent = np.ptp(sfm.camera_centres[both], axis=0).max()
+    assert np.sqrt(np.mean(np.sum((moved - sfm.camera_centres[both]) ** 2, axis=1))) < 0.01 * extent
+
+
 def test_sparse_points_lie_on_the_terrain(world, sfm, to_world):
     _, _, align = to_world
     errors = height_errors(world, align(sfm.points))
@@ -194,3 +207,5 @@ def test_bad_input_is_refused(tmp_path):
         hop_sfm.reconstruct_hop(frames, np.arange(4.0), intrinsics, tmp_path)
     with pytest.raises(ValueError, match="uint8"):
         hop_sfm.reconstruct_hop(frames.astype(np.float32), np.arange(5.0), intrinsics, tmp_path)
+    with pytest.raises(ValueError, match="mapper must be one of global, incremental, got 'sequential'"):
+        hop_sfm.SfmConfig(mapper="sequential")

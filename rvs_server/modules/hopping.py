@@ -60,8 +60,11 @@ class HoppingSettings(Settings):
                                  "sensor noise (drivers/sim/hopper_config.py)")
     # Reconstruction and the estimate.
     sfm_max_features: int = Field(4096, ge=256, le=32768, description="SIFT features per frame")
-    sfm_first_octave: int = Field(-1, ge=-1, le=2, description="-1 doubles the frames first (more features on "
-                                  "small frames), 0 is about 3x faster at 640x480")
+    sfm_first_octave: int = Field(0, ge=-1, le=2, description="SIFT's first octave: 0 the frames as they are, "
+                                  "-1 doubled first (more features on small frames, about 4x slower at 640x480)")
+    sfm_mapper: Literal["global", "incremental"] = Field("global", description="global: GLOMAP, every frame's "
+                                                          "pose at once; incremental: the paper's COLMAP mapping, "
+                                                          "which bent about one hop in seven (hop_sfm.py)")
     sfm_threads: int = Field(-1, ge=-1, le=256, description="COLMAP's threads: -1 every core; 1 makes a "
                              "reconstruction repeatable (threads finish in varying order)")
     min_registered: float = Field(0.6, gt=0, le=1, description="share of the frames SfM must register")

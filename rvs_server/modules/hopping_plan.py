@@ -105,7 +105,7 @@ def structure_from_motion(ctx: JobContext, product: Any, observation: HopObserva
         return load_reconstruction(saved)
     ctx.progress(5, f"structure from motion (COLMAP, CPU): {len(observation.frames)} frames of {inputs['hop']}")
     config = SfmConfig(max_features=settings.sfm_max_features, first_octave=settings.sfm_first_octave,
-                       num_threads=settings.sfm_threads)
+                       mapper=settings.sfm_mapper, num_threads=settings.sfm_threads)
     workdir = ctx.server.recovery.folder(ctx.job.id) / "colmap"
     with timed(timings, "sfm"), colmap_quiet():
         sfm = reconstruct_hop(observation.frames, observation.timestamps, observation.camera, workdir, config)
