@@ -16,10 +16,11 @@ from all pairwise rotations at once (rotation averaging), then every position an
 then bundle adjustment. The paper's incremental mapping (PnP registration one frame at a time) is
 kept as an option. Why: a hop's first frames see the near ground from 0.4 m, rushing past, with
 short tracks; incremental mapping reaches them last, at the end of a chain of registrations, and
-their scale drifts along it. On the stored hops of the chain and single-hop campaigns it bent about
-one hop in seven (the first third's scale 1.2 to 3.6 times the flight's, the parabola fit then
-refused the hop), at random: another RANSAC seed in the pair verification could bend or mend the
-same hop. Global positioning has no chain to drift along.
+their scale drifts along it. It bent 8 of 38 stored campaign hops (18 of the chains, 20 single hops
+with spin): the first third's scale 1.2 to 3.6 times the flight's, and the parabola fit refused
+them. Which hops bent was chance: another RANSAC seed in the pair verification could bend or mend
+the same hop. Global positioning has no chain to drift along; it bent none of the 38 and mended
+all 8 (tests/bench/measure_hopping.py for the campaigns).
 
 `densify` replaces COLMAP's PatchMatch MVS, which pycolmap runs only with CUDA ("Dense stereo
 reconstruction requires CUDA or HIP"). Why two-view SGBM on chosen pairs:

@@ -64,7 +64,7 @@ class HoppingSettings(Settings):
                                   "-1 doubled first (more features on small frames, about 4x slower at 640x480)")
     sfm_mapper: Literal["global", "incremental"] = Field("global", description="global: GLOMAP, every frame's "
                                                           "pose at once; incremental: the paper's COLMAP mapping, "
-                                                          "which bent about one hop in seven (hop_sfm.py)")
+                                                          "which bent 8 of 38 campaign hops (hop_sfm.py)")
     sfm_threads: int = Field(-1, ge=-1, le=256, description="COLMAP's threads: -1 every core; 1 makes a "
                              "reconstruction repeatable (threads finish in varying order)")
     min_registered: float = Field(0.6, gt=0, le=1, description="share of the frames SfM must register")
@@ -85,8 +85,7 @@ class HoppingSettings(Settings):
     # Landing target selection (toolbox/hopping_landing.py LandingParams).
     cell_m: float = Field(0.025, gt=0.005, le=0.5, description="cell of the top-down maps")
     obstacle_m: float = Field(0.08, gt=0, description="protrusion above the ground plane that is an obstacle")
-    min_hop_m: float = Field(0.8, gt=0, description="shortest hop the planner proposes (shorter ones, under "
-                             "40 frames, were reconstructed too poorly to fit: configs/hopping.toml)")
+    min_hop_m: float = Field(0.8, gt=0, description="shortest hop the planner proposes")
     max_hop_m: float = Field(2.0, gt=0, description="longest hop the planner proposes")
     elevation_deg: float = Field(60.0, ge=10, le=80, description="launch elevation of the planned hops")
     sigma_speed_mps: float = Field(0.05, ge=0, description="launch errors, 1 sigma, for the error ellipse")
