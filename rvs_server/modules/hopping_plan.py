@@ -1,7 +1,7 @@
 """hop-plan's job: the last hop's frames to a corrected position and the next landing target.
 
 The steps, each timed, in the paper's order (Fig 3):
-    sfm        COLMAP through pycolmap on the CPU, the camera's calibration held fixed (hop_sfm)
+    sfm        COLMAP through pycolmap on the CPU (global mapping), the camera's calibration held fixed (hop_sfm)
     dense      two-view SGBM on pairs rectified from the SfM poses (hop_sfm.densify)
     estimate   scale and gravity from the parabola, the cloud into the world at the launch estimate,
                ICP against the previous hop's cloud, the touchdown (hopping_estimate)
@@ -103,7 +103,8 @@ def structure_from_motion(ctx: JobContext, product: Any, observation: HopObserva
         ctx.progress(50, "structure from motion: taken from the interrupted run")
         timings["sfm"] = done["sfm"]
         return load_reconstruction(saved)
-    ctx.progress(5, f"structure from motion (COLMAP, CPU): {len(observation.frames)} frames of {inputs['hop']}")
+    ctx.progress(5, f"structure from motion (COLMAP, {settings.sfm_mapper} mapping, CPU): "
+                    f"{len(observation.frames)} frames of {inputs['hop']}")
     config = SfmConfig(max_features=settings.sfm_max_features, first_octave=settings.sfm_first_octave,
                        mapper=settings.sfm_mapper, num_threads=settings.sfm_threads)
     workdir = ctx.server.recovery.folder(ctx.job.id) / "colmap"
