@@ -131,6 +131,29 @@ def test_hop_plan_chain_and_global_map(server_factory, world):
     assert error < 0.05 * hop_range          # measured: 0.9 cm over 1.73 m (0.5 %); 1-6 cm on every core
 
 
+def test_hop_plan_tries_each_sfm_setting_and_refuses_a_flight_none_makes_clean(server_factory):
+    """The hop's second half of frames played backwards: no SfM setting can make that a parabola. hop-plan
+    tries hopping.toml's setting, then each fallback, records what each gave, and refuses by name."""
+    fallback = 'sfm_fallbacks = [{mapper = "incremental", first_octave = 0}]\n'
+    server = server_factory(configs={"hopping.toml": fallback + HOPPING})
+    products = server.data_dir / "products"
+    with server.connect(timeout=300) as c:
+        assert pairs(c.command("hop --speed 1.5 --elevation 60 --heading 0", timeout=120))["product"] == "hop-001"
+        path = products / "hop-001" / "frames.npz"
+        with np.load(path) as data:
+            arrays = {name: data[name] for name in data.files}
+        half = len(arrays["frames"]) // 2
+        arrays["frames"] = np.concatenate([arrays["frames"][:half], arrays["frames"][half:][::-1]])
+        np.savez_compressed(path, **arrays)
+        line, progress = command(c, "hop-plan", timeout=240)
+    assert line.split()[1:3] == ["ERR", "400"] and "hop-001 not reconstructed well enough" in line, line
+    assert any("global mapping" in p and "attempt 1" in p for p in progress), progress
+    assert any("incremental mapping" in p and "attempt 2" in p for p in progress), progress
+    attempts = json.loads((products / "hop-plan-001" / "product.json").read_text())["sfm_attempts"]
+    assert [(a["mapper"], a["first_octave"]) for a in attempts] == [("global", 0), ("incremental", 0)]
+    assert all(a["problem"] and 0 <= a["fit_share"] < 0.6 for a in attempts), attempts
+
+
 def test_bad_options_name_the_field_and_change_nothing(server_factory):
     server = server_factory(configs={"hopping.toml": HOPPING})
     with server.connect() as c:

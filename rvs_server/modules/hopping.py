@@ -46,6 +46,14 @@ REAL_LINK_MISSING = ("hopper: backend \"real\" (hopping.toml) has no link to a h
                      "implemented; set backend = \"sim\" to hop on the simulated world")
 
 
+class SfmSetting(Settings):
+    """One way to run structure from motion (hop_sfm.SfmConfig's choices)."""
+
+    mapper: Literal["global", "incremental"] = Field(..., description="global: GLOMAP; incremental: COLMAP's")
+    first_octave: int = Field(..., ge=-1, le=2, description="SIFT's first octave: 0 the frames as they are, -1 "
+                              "doubled first")
+
+
 class HoppingSettings(Settings):
     """configs/hopping.toml."""
 
@@ -65,6 +73,10 @@ class HoppingSettings(Settings):
     sfm_mapper: Literal["global", "incremental"] = Field("global", description="global: GLOMAP, every frame's "
                                                           "pose at once; incremental: the paper's COLMAP mapping, "
                                                           "which bent 8 of 38 campaign hops (hop_sfm.py)")
+    sfm_fallbacks: list[SfmSetting] = Field(
+        [SfmSetting(mapper="incremental", first_octave=-1), SfmSetting(mapper="global", first_octave=-1)],
+        max_length=4, description="tried in turn when a reconstruction is not a clean flight (the parabola fit's "
+        "min_registered / min_fit_inliers); each setting bends a few hops in twenty, at random, and seldom the same")
     sfm_threads: int = Field(-1, ge=-1, le=256, description="COLMAP's threads: -1 every core; 1 makes a "
                              "reconstruction repeatable (threads finish in varying order)")
     min_registered: float = Field(0.6, gt=0, le=1, description="share of the frames SfM must register")

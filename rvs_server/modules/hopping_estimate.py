@@ -82,12 +82,9 @@ def flight_positions(velocity: np.ndarray, taus, gravity: float) -> np.ndarray:
 def estimate_hop(observation: HopObservation, sfm: HopReconstruction, cloud_sfm: np.ndarray,
                  launch: np.ndarray, previous_cloud: np.ndarray | None, params: EstimateParams) -> HopEstimate:
     """The hop in the world: see the module docstring. launch: the estimated centre of mass at launch."""
-    index = registered_frames(sfm, params.min_registered)
+    index, gravity_sfm, first = first_fit(observation, sfm, params)
     centres, rotations = sfm.camera_centres[index], sfm.camera_rotations[index]
     times = observation.timestamps[index]
-    # The accelerometer's gravity at rest, into the SfM frame through the first registered view (no spin).
-    gravity_sfm = rotations[0] @ observation.gravity_launch
-    first = _fit(lambda: fit_flight(centres, times, params.gravity, gravity_sfm, launch_time=0.0))
     # Eq 1 with the scale known: camera centres to the centre of mass.
     com_sfm = centre_of_mass_positions(centres, rotations, observation.com_in_camera, first.scale)
     heading = observation.sun_heading_launch - body_yaw_in_hop(first.rotation, rotations[0], observation.camera_to_body)
@@ -95,16 +92,44 @@ def estimate_hop(observation: HopObservation, sfm: HopReconstruction, cloud_sfm:
     start = np.asarray(launch, float) + rotation_z(heading) @ flight_positions(first.launch_velocity, [times[0]],
                                                                               params.gravity)[0]
     result, icp = corrected_hop(com_sfm, times, cloud_sfm, start, heading, previous_cloud, gravity_sfm, params)
-    kept = float(result.flight.inliers.mean())
-    if kept < params.min_inliers:
-        raise EstimateError(f"the parabola fit kept {int(result.flight.inliers.sum())} of {len(times)} registered "
-                            f"frames ({100 * kept:.0f} %, at least {100 * params.min_inliers:.0f} % needed: "
-                            f"hopping.toml min_fit_inliers): the reconstruction is not a clean flight")
+    problem = too_few_inliers(result.flight.inliers, params.min_inliers)
+    if problem:
+        raise EstimateError(problem)
     estimate = HopEstimate(result, heading, observation.sun_heading_launch, index,
                            result.flight.to_hop_frame(com_sfm), start, np.full(3, np.nan), math.nan,
                            params.gravity, icp)
     point, tau = touchdown(estimate, times[-1] - times[0], observation.frame_interval, observation.body_radius)
     return replace(estimate, touchdown=point, touchdown_tau=tau)
+
+
+def first_fit(observation: HopObservation, sfm: HopReconstruction, params: EstimateParams):
+    """(registered frame indices, gravity in the SfM frame, the parabola fit to their camera centres)."""
+    index = registered_frames(sfm, params.min_registered)
+    times = observation.timestamps[index]
+    # The accelerometer's gravity at rest, into the SfM frame through the first registered view (no spin).
+    gravity_sfm = sfm.camera_rotations[index[0]] @ observation.gravity_launch
+    fit = _fit(lambda: fit_flight(sfm.camera_centres[index], times, params.gravity, gravity_sfm, launch_time=0.0))
+    return index, gravity_sfm, fit
+
+
+def flight_check(observation: HopObservation, sfm: HopReconstruction, params: EstimateParams) -> tuple[float, str]:
+    """How cleanly the reconstruction flies a parabola: (share of the frames the fit keeps, of all the hop's
+    frames; what falls short of min_registered / min_inliers, or "" when nothing does). hop-plan tries its
+    next SfM setting when something does."""
+    try:
+        index, _, fit = first_fit(observation, sfm, params)
+    except EstimateError as exc:
+        return 0.0, str(exc)
+    return float(fit.inliers.sum()) / len(sfm.registered), too_few_inliers(fit.inliers, params.min_inliers)
+
+
+def too_few_inliers(inliers: np.ndarray, min_share: float) -> str:
+    kept = float(inliers.mean())
+    if kept >= min_share:
+        return ""
+    return (f"the parabola fit kept {int(inliers.sum())} of {len(inliers)} registered frames ({100 * kept:.0f} %, "
+            f"at least {100 * min_share:.0f} % needed: hopping.toml min_fit_inliers): the reconstruction is not a "
+            f"clean flight")
 
 
 def registered_frames(sfm: HopReconstruction, min_share: float) -> np.ndarray:

@@ -27,7 +27,7 @@ from ..protocol import BadRequest, RvsError
 from ..rasters import write_geotiff, write_png
 from ..toolbox.geometry import apply
 from ..toolbox.hopping import LandingParams, LandingPlan, NoGroundError, plan_landing
-from .hopping_estimate import EstimateError, EstimateParams, HopEstimate, estimate_hop
+from .hopping_estimate import EstimateError, EstimateParams, HopEstimate, estimate_hop, flight_check
 from .hopping_pictures import plan_pictures, trajectory_picture, truth_target_picture
 from .hopping_store import (HopObservation, cloud_of, load_observation, load_reconstruction, load_truth, read_ply,
                             save_reconstruction, write_ply)
@@ -103,13 +103,10 @@ def structure_from_motion(ctx: JobContext, product: Any, observation: HopObserva
         ctx.progress(50, "structure from motion: taken from the interrupted run")
         timings["sfm"] = done["sfm"]
         return load_reconstruction(saved)
-    ctx.progress(5, f"structure from motion (COLMAP, {settings.sfm_mapper} mapping, CPU): "
-                    f"{len(observation.frames)} frames of {inputs['hop']}")
-    config = SfmConfig(max_features=settings.sfm_max_features, first_octave=settings.sfm_first_octave,
-                       mapper=settings.sfm_mapper, num_threads=settings.sfm_threads)
     workdir = ctx.server.recovery.folder(ctx.job.id) / "colmap"
     with timed(timings, "sfm"), colmap_quiet():
-        sfm = reconstruct_hop(observation.frames, observation.timestamps, observation.camera, workdir, config)
+        sfm, attempts = reconstruct_cleanly(ctx, observation, settings, workdir, inputs["hop"])
+    product.note("sfm_attempts", attempts)
     product.add("sfm.npz", "the reconstruction in COLMAP's frame (arbitrary scale and axes): camera centres and "
                 "rotations per frame (NaN: not registered), sparse points, COLMAP's timings")
     save_reconstruction(saved, sfm)
@@ -118,6 +115,35 @@ def structure_from_motion(ctx: JobContext, product: Any, observation: HopObserva
     done["sfm"] = timings["sfm"]
     ctx.checkpoint({"product": product.name, "inputs": inputs, "done": done})
     return sfm
+
+
+def reconstruct_cleanly(ctx: JobContext, observation: HopObservation, settings: HoppingSettings, workdir: Path,
+                        hop: str) -> tuple[HopReconstruction, list[dict]]:
+    """SfM with hopping.toml's setting, then each of sfm_fallbacks in turn while the reconstruction is not a
+    clean flight (hopping_estimate.flight_check). Every setting bends a few hops at random, seldom the same
+    ones. Returns the first clean reconstruction, or the one whose parabola fit kept most frames, and what
+    each attempt gave."""
+    settings_tried = [(settings.sfm_mapper, settings.sfm_first_octave)] + \
+        [(fallback.mapper, fallback.first_octave) for fallback in settings.sfm_fallbacks]
+    params = estimate_params(settings)
+    best, best_share, attempts = None, -1.0, []
+    for number, (mapper, octave) in enumerate(settings_tried, start=1):
+        ctx.safe_point()
+        ctx.progress(5, f"structure from motion (COLMAP, {mapper} mapping, SIFT octave {octave}, CPU), attempt "
+                        f"{number}: {len(observation.frames)} frames of {hop}")
+        config = SfmConfig(max_features=settings.sfm_max_features, first_octave=octave, mapper=mapper,
+                           num_threads=settings.sfm_threads)
+        sfm = reconstruct_hop(observation.frames, observation.timestamps, observation.camera, workdir, config)
+        share, problem = flight_check(observation, sfm, params)
+        attempts.append({"mapper": mapper, "first_octave": octave, "registered": int(sfm.registered.sum()),
+                         "fit_share": round(share, 4), "problem": problem,
+                         "seconds": round(sfm.timings.get("total", math.nan), 2)})
+        if share > best_share:
+            best, best_share = sfm, share
+        if not problem:
+            break
+        ctx.progress(5, f"structure from motion, attempt {number}: {problem}")
+    return best, attempts
 
 
 @contextmanager
@@ -136,16 +162,20 @@ def _estimate(observation, sfm, cloud_sfm, inputs, previous: str | None, setting
         raise BadRequest(f"hop-plan: the dense cloud of {inputs['hop']} has {len(cloud_sfm)} points: too few to map "
                          f"the landing area; product={product.name}", data={"product": product.name})
     previous_cloud = cloud_of(read_ply(Path(previous)))[0] if previous and Path(previous).exists() else None
-    params = EstimateParams(gravity=settings.gravity_mps2, icp_voxel=settings.icp_voxel_m,
-                            icp_initial_distance=settings.icp_initial_distance_m, icp_crop=settings.icp_crop_m,
-                            icp_max_yaw_deg=settings.icp_max_yaw_deg, icp_min_contrast=settings.icp_min_contrast,
-                            icp_distinct=settings.icp_distinct_m, min_registered=settings.min_registered,
-                            min_inliers=settings.min_fit_inliers)
     try:
-        return estimate_hop(observation, sfm, cloud_sfm, np.asarray(inputs["launch"]), previous_cloud, params)
+        return estimate_hop(observation, sfm, cloud_sfm, np.asarray(inputs["launch"]), previous_cloud,
+                            estimate_params(settings))
     except EstimateError as exc:
         raise BadRequest(f"hop-plan: {inputs['hop']} not reconstructed well enough: {exc}; product={product.name}",
                          data={"product": product.name}) from None
+
+
+def estimate_params(settings: HoppingSettings) -> EstimateParams:
+    return EstimateParams(gravity=settings.gravity_mps2, icp_voxel=settings.icp_voxel_m,
+                          icp_initial_distance=settings.icp_initial_distance_m, icp_crop=settings.icp_crop_m,
+                          icp_max_yaw_deg=settings.icp_max_yaw_deg, icp_min_contrast=settings.icp_min_contrast,
+                          icp_distinct=settings.icp_distinct_m, min_registered=settings.min_registered,
+                          min_inliers=settings.min_fit_inliers)
 
 
 def _goal(cfg: Any, estimate: HopEstimate) -> tuple[float | None, np.ndarray | None]:
