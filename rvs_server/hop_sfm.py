@@ -20,10 +20,11 @@ their scale drifts along it. It bent 8 of 38 stored campaign hops (18 of the cha
 with spin): the first third's scale 1.2 to 3.6 times the flight's, and the parabola fit refused
 them. Which hops bent was chance: another RANSAC seed in the pair verification could bend or mend
 the same hop. Global positioning has no chain to drift along; it bent none of the 38 and mended
-all 8 (tests/bench/measure_hopping.py for the campaigns). No setting is immune, though: global
-mapping bent a single hop that the incremental mapper had reconstructed well (its second half at
-another scale than its first). hop-plan therefore checks every reconstruction's flight and tries
-the next setting of hopping.toml's sfm_fallbacks while it is not clean (modules/hopping_plan.py).
+all 8 (tests/bench/measure_hopping.py for the campaigns). No setting is immune, though: in the next
+single-hop campaign global mapping bent 2 of 32 hops. The incremental mapper at SIFT octave -1
+reconstructed one of them well; every setting bent the other (launched rolled 35 degrees off a rock,
+half of each frame sky). hop-plan therefore checks every reconstruction's flight and tries the next
+setting of hopping.toml's sfm_fallbacks while it is not clean (modules/hopping_plan.py).
 
 `densify` replaces COLMAP's PatchMatch MVS, which pycolmap runs only with CUDA ("Dense stereo
 reconstruction requires CUDA or HIP"). Why two-view SGBM on chosen pairs:
