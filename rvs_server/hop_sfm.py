@@ -59,6 +59,7 @@ import time
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import Literal, get_args
 
 import cv2
 import numpy as np
@@ -68,11 +69,12 @@ from .toolbox.geometry import Intrinsics
 from .toolbox.stereo import Rectification, SgbmConfig, stereo_points
 
 __all__ = ["SfmConfig", "HopReconstruction", "reconstruct_hop", "as_intrinsics", "colmap_camera",
-           "MAPPERS", "DenseConfig", "StereoPair", "densify", "scene_depths", "choose_pairs", "pair_rectification",
-           "consistent_points", "voxel_average", "similarity_umeyama"]
+           "Mapper", "MAPPERS", "DenseConfig", "StereoPair", "densify", "scene_depths", "choose_pairs",
+           "pair_rectification", "consistent_points", "voxel_average", "similarity_umeyama"]
 
 IMAGE_DIGITS = 4
-MAPPERS = ("global", "incremental")
+Mapper = Literal["global", "incremental"]
+MAPPERS = get_args(Mapper)
 
 
 # ------------------------------------------------------------------------------------------- SfM
@@ -90,7 +92,7 @@ class SfmConfig:
     quadratic_overlap: bool = True
     min_inliers: int = 15              # verified matches for a pair to count
     init_min_tri_angle_deg: float = 16.0  # incremental: COLMAP's default for the first pair
-    mapper: str = "global"             # "global" (GLOMAP) or "incremental" (COLMAP's): see the module docstring
+    mapper: Mapper = "global"          # "global" (GLOMAP) or "incremental" (COLMAP's): see the module docstring
     num_threads: int = -1
     seed: int = 0
 

@@ -31,6 +31,7 @@ from drivers.sim.hopper_flight import OffTerrain
 
 from ..config import CommandConfig, Point, Settings
 from ..dispatch import Module
+from ..hop_sfm import Mapper
 from ..jobs import JobContext
 from ..protocol import BadRequest, DeviceError, WrongMode
 from ..rasters import write_geotiff, write_png
@@ -49,7 +50,7 @@ REAL_LINK_MISSING = ("hopper: backend \"real\" (hopping.toml) has no link to a h
 class SfmSetting(Settings):
     """One way to run structure from motion (hop_sfm.SfmConfig's choices)."""
 
-    mapper: Literal["global", "incremental"] = Field(..., description="global: GLOMAP; incremental: COLMAP's")
+    mapper: Mapper = Field(..., description="global: GLOMAP; incremental: COLMAP's")
     first_octave: int = Field(..., ge=-1, le=2, description="SIFT's first octave: 0 the frames as they are, -1 "
                               "doubled first")
 
@@ -70,7 +71,7 @@ class HoppingSettings(Settings):
     sfm_max_features: int = Field(4096, ge=256, le=32768, description="SIFT features per frame")
     sfm_first_octave: int = Field(0, ge=-1, le=2, description="SIFT's first octave: 0 the frames as they are, "
                                   "-1 doubled first (more features on small frames, about 4x slower at 640x480)")
-    sfm_mapper: Literal["global", "incremental"] = Field("global", description="global: GLOMAP, every frame's "
+    sfm_mapper: Mapper = Field("global", description="global: GLOMAP, every frame's "
                                                           "pose at once; incremental: the paper's COLMAP mapping, "
                                                           "which bent 8 of 38 campaign hops (hop_sfm.py)")
     sfm_fallbacks: list[SfmSetting] = Field(

@@ -117,7 +117,7 @@ def flight_check(observation: HopObservation, sfm: HopReconstruction, params: Es
     frames; what falls short of min_registered / min_inliers, or "" when nothing does). hop-plan tries its
     next SfM setting when something does."""
     try:
-        index, _, fit = first_fit(observation, sfm, params)
+        _, _, fit = first_fit(observation, sfm, params)
     except EstimateError as exc:
         return 0.0, str(exc)
     return float(fit.inliers.sum()) / len(sfm.registered), too_few_inliers(fit.inliers, params.min_inliers)
