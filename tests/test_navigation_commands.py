@@ -11,13 +11,13 @@ from conftest import pairs
 from rvs_server.rasters import read_geotiff
 
 
-def clear_goal(product) -> tuple[float, float]:
-    """A known cell 2-3 m ahead, at least 0.8 m from any hazard or unknown cell."""
+def clear_goal(product, max_y: float = np.inf) -> tuple[float, float]:
+    """A known cell 2-3 m away (y at most max_y), at least 0.8 m from any hazard or unknown cell."""
     code, spec = read_geotiff(product / "hazard.tif")
     clearance = distance_transform_edt(code == 0) * spec.cell
     xs, ys = spec.centres()
     x, y = np.meshgrid(xs, ys)
-    ok = (clearance > 0.8) & (np.hypot(x, y) > 2.0) & (np.hypot(x, y) < 3.0)
+    ok = (clearance > 0.8) & (np.hypot(x, y) > 2.0) & (np.hypot(x, y) < 3.0) & (y <= max_y)
     row, col = np.argwhere(ok)[0]
     return float(xs[col]), float(ys[row])
 
@@ -45,13 +45,33 @@ def test_bad_goals_are_refused_before_anything_is_planned(server):
         reply = c.command("plan-path --to 2,0 --weight 1.5")
         assert "ERR 400" in reply and "--weight" in reply
         reply = c.command("plan-path --to 500,500 --output nowhere", timeout=120)
-        assert "ERR 400 bad-request --to 500,500 is 707.1 m from the start; the planner reaches 100 m" in reply
-        assert "ERR 400" in c.command("navigate --to 0,150") and "reaches 100 m" in c.command("navigate --to 0,150")
+        # The default operating area is the simulated world (12 m square, whole mesh blocks).
+        assert "ERR 400 bad-request --to 500,500 is outside the operating area: x -6" in reply, reply
+        assert "(navigation.toml operating_area)" in reply
+        assert "is outside the operating area" in c.command("navigate --to 0,150")
     assert not (server.data_dir / "products" / "nowhere").exists()
 
 
-def test_pose_sets_the_estimate(server):
+def test_without_an_operating_area_the_planner_reach_still_bounds_goals(server_factory):
+    server = server_factory(configs={"navigation.toml": 'operating_area = "none"\n'})
     with server.connect() as c:
-        assert pairs(c.command("pose 1.5,-2,45")) == {"x": "1.500", "y": "-2.000", "heading": "45.00"}
-        assert "ERR 400" in c.command("pose 1,2")
-        assert "ERR 400" in c.command("pose 1,2,nan")
+        reply = c.command("plan-path --from 0,0 --to 500,500")
+        assert "ERR 400 bad-request --to 500,500 is 707.1 m from the start; the planner reaches 100 m" in reply
+        assert "reaches 100 m" in c.command("navigate --to 0,150")
+
+
+def test_plan_path_keeps_inside_the_operating_area(server_factory):
+    server = server_factory(configs={"navigation.toml": "operating_area = { x = [-6, 6], y = [-6, 0.8] }\n"})
+    with server.connect() as c:
+        assert "--to 2,1 is outside the operating area: x -6:6, y -6:0.8" in c.command("plan-path --to 2,1")
+        assert "--from 0,3 is outside the operating area" in c.command("plan-path --from 0,3 --to 0,0")
+        c.command("dem-full-tof --pan -60:60 --output arc", timeout=300)
+        goal = clear_goal(server.data_dir / "products" / "arc", max_y=0.4)
+        reply = pairs(c.command(f"plan-path --to {goal[0]:.2f},{goal[1]:.2f}", timeout=120))
+    product = server.data_dir / "products" / reply["product"]
+    cost, spec = read_geotiff(product / "cost.tif")
+    _, ys = spec.centres()
+    # North of y = 0.8 is a hazard, grown by the rover's clearance (0.4 m) like a rock.
+    assert np.isnan(cost[ys > 0.8 - 0.4 + spec.cell]).all()
+    waypoints = json.loads((product / "waypoints.json").read_text())["waypoints"]
+    assert max(w["y"] for w in waypoints) <= 0.4 + spec.cell

@@ -570,3 +570,23 @@ def test_holes_are_hazards_for_stereo_and_stay_unknown_for_tof_by_default():
     assert holes_as_hazards(layers, start, "tof", settings) is layers
     both = NavigationSettings(holes={"tof": "hazard", "stereo": "hazard"})
     assert holes_as_hazards(layers, start, "tof", both).hazard[20:24, 20:24].all()
+
+
+def test_ground_outside_the_operating_area_is_a_hazard_the_rover_keeps_clear_of():
+    from rvs_server.toolbox.planning import outside_box, with_hazards
+    spec = GridSpec(0.0, 0.0, 0.1, 40, 60)               # 6 x 4 m
+    box = (0.0, 6.0, 0.0, 3.0)                           # the northern metre is off limits
+    outside = outside_box(spec, box)
+    xs, ys = spec.centres()
+    assert (outside == (ys > 3.0)[:, None].repeat(spec.cols, axis=1)).all()
+    hazard = np.zeros(spec.shape, bool)
+    hazard[:34, 30] = True                               # a wall with its only gap in the off-limits strip
+    layers = MapLayers(spec, np.zeros(spec.shape), hazard, np.zeros(spec.shape, bool))
+    params = PlanningParams(rover_radius_m=0.2, hazard_margin_m=0.0)
+    through_the_gap = plan_path(layers, (1.0, 1.0), (5.0, 1.0), params)
+    assert through_the_gap.found and through_the_gap.waypoints[:, 1].max() > 3.0
+    kept_in = plan_path(with_hazards(layers, outside), (1.0, 1.0), (5.0, 1.0), params)
+    assert not kept_in.found and kept_in.reason == "unreachable"
+    # Grown like a rock: a path along the edge keeps the rover's radius inside.
+    along = plan_path(with_hazards(layers, outside), (1.0, 2.5), (2.5, 2.75), params)
+    assert along.found and along.waypoints[:, 1].max() <= 3.0 - 0.2 + 1e-9

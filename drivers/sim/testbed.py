@@ -88,6 +88,17 @@ class SimulatedTestbed:
     def ready(self) -> bool:
         return self._world is not None
 
+    def extent(self) -> tuple[float, float, float, float] | None:
+        """(x_min, x_max, y_min, y_max) of the ground the rover can drive on: the world's bounds once
+        built; before that the configured size (the built world spans at least that), or None for a
+        world file not loaded yet."""
+        if self._world is not None:
+            return self._world.bounds
+        if self.world_file is None:
+            half_x, half_y = (size / 2 for size in self.world_config.size_m)
+            return (-half_x, half_x, -half_y, half_y)
+        return None
+
     @property
     def rover(self) -> Rover:
         self.world

@@ -43,8 +43,8 @@ from ..toolbox.planning_paths import path_length
 from ..workflow import WorkflowError, resolve_params, run_workflow
 from .mapping import MappingSettings, NavigateArgs, check_workflow, write_maps
 from .navigate_pictures import write_traverse
-from .navigation import (NavigationSettings, check_reach, handout_border, holes_as_hazards, module, planning_layers,
-                         planning_params, under_rover, wait_for_pose, write_plan)
+from .navigation import (NavigationSettings, check_reach, handout_border, holes_as_hazards, module, operating_box,
+                         planning_layers, planning_params, under_rover, wait_for_pose, within_area, write_plan)
 
 SENSOR_DEVICE = {"tof": "tof", "stereo": "cameras"}
 MAP_CLOUD_VOXEL_M = 0.05
@@ -266,6 +266,7 @@ class Navigation:
                                    self.settings.global_margin_m, maps)
         fused = fuse_nearest(blank, maps, [c["pose_corrected"][:2] for c in self.state.cycles],
                              self.settings.sticky_range_m)
+        fused = within_area(fused, operating_box(self.server))
         under = under_rover(fused.spec, rover, self.settings.rover_radius_m)
         cost = np.where(under, np.where(np.isfinite(fused.cost), fused.cost, 0.0), fused.cost)
         fused = MapLayers(fused.spec, np.where(under & fused.hazard, 0.0, cost), fused.hazard & ~under,

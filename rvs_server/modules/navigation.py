@@ -15,10 +15,10 @@ from typing import Annotated, Any, Generic, Literal, TypeVar
 
 import cv2
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, PlainValidator, ValidationError
 from scipy.ndimage import binary_fill_holes
 
-from ..config import CommandConfig, Point, Range, SafeName, Settings
+from ..config import CommandConfig, Point, Range, SafeName, Settings, TypeLabel
 from ..dispatch import Call, Module
 from ..jobs import JobContext
 from ..protocol import BadRequest, Timeout, WrongMode
@@ -28,7 +28,8 @@ from ..toolbox.geometry import RoverPose
 from ..toolbox.grid import GridSpec
 from ..toolbox.hazard import HAZARD, UNKNOWN
 from ..toolbox.planning import (MapLayers, PlanningParams, blank_map_spanning, cells_to_world, distance_to_border,
-                                drivable_prefix, enclosed_unknown, fuse_maps, plan_path, terrain_cost, with_hazards)
+                                drivable_prefix, enclosed_unknown, fuse_maps, outside_box, plan_path, terrain_cost,
+                                with_hazards)
 from .grid_canvas import Canvas
 
 T = TypeVar("T")
@@ -47,6 +48,38 @@ class PerSensor(BaseModel, Generic[T]):
         return getattr(self, sensor)
 
 
+class OperatingArea(BaseModel):
+    """A box in the world frame, metres, that the rover keeps inside."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    x: Range
+    y: Range
+
+    @property
+    def box(self) -> tuple[float, float, float, float]:
+        return (*self.x, *self.y)
+
+
+AREA_NAMES = ("world", "none")
+
+
+def _area(value: Any) -> OperatingArea | str:
+    """navigation.toml operating_area: "world", "none" or a table {x = [A, B], y = [C, D]}; one
+    message for what is wrong, not one per reading of it."""
+    if isinstance(value, OperatingArea) or value in AREA_NAMES:
+        return value
+    if not isinstance(value, dict):
+        raise ValueError("neither a name nor a table")
+    try:
+        return OperatingArea.model_validate(value)
+    except ValidationError as exc:
+        raise ValueError("; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg'].removeprefix('Value error, ')}"
+                                   for e in exc.errors(include_url=False))) from None
+
+
+AreaSetting = Annotated[Any, PlainValidator(_area), TypeLabel("world|none|{x = [A, B], y = [C, D]}")]
+
+
 class NavigationSettings(Settings):
     weight: float = Field(0.5, ge=0, le=1, description="1: shortest path; 0: easiest ground")
     rover_radius_m: float = Field(0.3, gt=0, description="hazards grow by this plus the margin")
@@ -62,6 +95,10 @@ class NavigationSettings(Settings):
     global_cell_m: float = Field(0.05, gt=0, description="cell of the blank global map")
     global_margin_m: float = Field(3.0, ge=0, description="the global map spans start and goal plus this")
     max_reach_m: float = Field(100.0, gt=0, le=1000, description="goals farther from the start are refused")
+    operating_area: AreaSetting = Field(
+        "world", description="where the rover may go, {x = [A, B], y = [C, D]} in world metres: ground outside is "
+        "a hazard, and goals outside are refused; world: the simulated world's extent (no bound with real devices); "
+        "none: no bound")
     slope_limit_deg: float = Field(20.0, gt=0, lt=90, description="terrain cost 1 at this slope")
     roughness_limit: float = Field(0.04, gt=0, description="terrain cost 1 at this roughness")
     # navigate
@@ -202,11 +239,33 @@ def wait_for_pose(ctx: Any, reports: int, timeout_s: float, after: str) -> None:
         waited += 0.5
 
 
+def operating_box(server: Any) -> tuple[float, float, float, float] | None:
+    """navigation.toml operating_area as (x_min, x_max, y_min, y_max), or None where there is no bound."""
+    area = server.module_configs["navigation"].settings.operating_area
+    if isinstance(area, OperatingArea):
+        return area.box
+    if area == "world" and server.devices.simulated:
+        return server.devices.testbed.extent()
+    return None
+
+
+def within_area(layers: MapLayers, box: tuple[float, float, float, float] | None) -> MapLayers:
+    """The map with the ground outside the operating area made hazards (they grow like rocks: the
+    rover's body stays inside too)."""
+    return layers if box is None else with_hazards(layers, outside_box(layers.spec, box))
+
+
 def check_reach(server: Any, start: tuple[float, float] | None, goal: tuple[float, float]) -> None:
-    """Refuse a goal farther than the planner's reach: its blank global map would be gigabytes."""
+    """Refuse a goal outside the operating area, or farther than the planner's reach (its blank
+    global map would be gigabytes); a start given outside the area too."""
     settings: NavigationSettings = server.module_configs["navigation"].settings
     if not all(math.isfinite(v) for v in goal):
         raise BadRequest(f"--to {goal[0]},{goal[1]}: must be finite numbers")
+    box = operating_box(server)
+    for option, point in (("--from", start), ("--to", goal)):
+        if box is not None and point is not None and outside_box_point(point, box):
+            raise BadRequest(f"{option} {point[0]:g},{point[1]:g} is outside the operating area: x {box[0]:g}:"
+                             f"{box[1]:g}, y {box[2]:g}:{box[3]:g} (navigation.toml operating_area)")
     if start is None:
         pose = server.pose_estimate
         start = (pose.x, pose.y)
@@ -214,6 +273,10 @@ def check_reach(server: Any, start: tuple[float, float] | None, goal: tuple[floa
     if distance > settings.max_reach_m:
         raise BadRequest(f"--to {goal[0]:g},{goal[1]:g} is {distance:.1f} m from the start; the planner reaches "
                          f"{settings.max_reach_m:g} m (navigation.toml max_reach_m)")
+
+
+def outside_box_point(point: tuple[float, float], box: tuple[float, float, float, float]) -> bool:
+    return not (box[0] <= point[0] <= box[1] and box[2] <= point[1] <= box[3])
 
 
 def _validate_plan(server: Any, cfg: PlanPathConfig) -> None:
@@ -231,6 +294,7 @@ def plan_path_command(ctx: JobContext, cfg: PlanPathConfig) -> dict[str, Any]:
     local, source, folder, extra = local_map(server, cfg.sensor)
     fused = fuse_maps(blank_map_spanning(start, cfg.to, settings.global_cell_m, settings.global_margin_m, [local]),
                       [local])
+    fused = within_area(fused, operating_box(server))
     fused = holes_as_hazards(fused, pose, cfg.sensor, settings)
     params = planning_params(settings, cfg.weight)
     ctx.progress(30, "planning")

@@ -179,6 +179,13 @@ def enclosed_unknown(layers: MapLayers, min_cells: int = 1, exempt: np.ndarray |
     return ~drop[labels]
 
 
+def outside_box(spec: GridSpec, box: tuple[float, float, float, float]) -> np.ndarray:
+    """Cells whose centre lies outside the box (x_min, x_max, y_min, y_max), world metres."""
+    xs, ys = spec.centres()
+    x_min, x_max, y_min, y_max = box
+    return ~(((ys >= y_min) & (ys <= y_max))[:, None] & ((xs >= x_min) & (xs <= x_max))[None, :])
+
+
 def with_hazards(layers: MapLayers, mask: np.ndarray) -> MapLayers:
     """The map with the cells of mask made hazards."""
     return MapLayers(layers.spec, np.where(mask, np.inf, layers.cost), layers.hazard | mask, layers.unknown & ~mask)
