@@ -164,7 +164,7 @@ class Navigation:
         self.progress(f"cycle {cycle}: mapping (pan {pan[0]:g}:{pan[1]:g})")
         command = f"navigate-{self.cfg.sensor}"
         workflow = check_workflow(self.server, command, NavigateArgs)
-        tilt = self.mapping.tof_tilt if self.cfg.sensor == "tof" else self.mapping.stereo_tilt
+        tilt = self.settings.tilt.of(self.cfg.sensor)
         reference = self._map_cloud_path(cycle - 1)
         metres, degrees = state.moved
         # How far odometry can be off since the last map: the alignment believes no more than this.

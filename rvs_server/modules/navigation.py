@@ -115,8 +115,11 @@ class NavigationSettings(Settings):
     turn_rate_deg_s: float = Field(20.0, gt=0, description="simulated rover turn rate")
     step_limit_m: float = Field(0.09, gt=0, description="navigate's maps call a step hazardous from this "
                                 "height: below the rover's limit by the sensors' height error")
+    tilt: PerSensor[Range] = Field(
+        PerSensor[Range](tof=(-62.0, -28.0), stereo=(-62.0, -20.0)), description="per sensor, the elevations "
+        "navigate's panoramas cover, degrees: down to the ground beside the rover, which it drives over next")
     blind_radius_m: PerSensor[Metres] = Field(
-        PerSensor[Metres](tof=0.9, stereo=1.7), description="per sensor, the ring round the mast it cannot see: "
+        PerSensor[Metres](tof=0.9, stereo=1.0), description="per sensor, the ring round the mast it cannot see: "
         "counts as seen when the part of the path to hand out is cut, and is no hole where the rover started")
     holes: PerSensor[HolePolicy] = Field(
         PerSensor[HolePolicy](tof="unknown", stereo="hazard"), description="per sensor, unknown cells walled in "
