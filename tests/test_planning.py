@@ -590,3 +590,19 @@ def test_ground_outside_the_operating_area_is_a_hazard_the_rover_keeps_clear_of(
     # Grown like a rock: a path along the edge keeps the rover's radius inside.
     along = plan_path(with_hazards(layers, outside), (1.0, 2.5), (2.5, 2.75), params)
     assert along.found and along.waypoints[:, 1].max() <= 3.0 - 0.2 + 1e-9
+
+
+def test_holes_on_path_are_the_holes_a_path_passes_within_the_clearance_of():
+    from rvs_server.toolbox.planning import holes_on_path
+    holes = np.zeros((40, 40), bool)
+    holes[10:13, 18:21] = True                           # beside the path: 0.2 m from its cells
+    holes[30:33, 5:8] = True                             # far from it
+    holes[13, 21] = True                                 # touching the first one diagonally: the same hole
+    path = np.column_stack([np.full(40, 15), np.arange(40)])   # row 15, west to east
+    crossed = holes_on_path(path, holes, cell=0.1, clearance_m=0.3)
+    expected = np.zeros_like(holes)
+    expected[10:13, 18:21] = True
+    expected[13, 21] = True
+    assert (crossed == expected).all()
+    assert not holes_on_path(path, holes, cell=0.1, clearance_m=0.1).any()
+    assert not holes_on_path(path, np.zeros_like(holes), cell=0.1, clearance_m=0.3).any()

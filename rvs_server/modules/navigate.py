@@ -28,6 +28,7 @@ from typing import Any, Literal
 
 import numpy as np
 from pydantic import Field
+from scipy.ndimage import distance_transform_edt
 
 from ..config import CommandConfig, Point, SafeName
 from ..jobs import JobContext
@@ -38,12 +39,12 @@ from ..rasters import read_geotiff
 from ..toolbox.geometry import RoverPose
 from ..toolbox.localisation import merge_clouds
 from ..toolbox.planning import (MapLayers, blank_map_spanning, drivable_prefix, fuse_nearest, keep_route,
-                                nearest_open_cell, plan_path)
+                                holes_on_path, nearest_open_cell, plan_path, with_hazards)
 from ..toolbox.planning_paths import path_length
 from ..workflow import WorkflowError, resolve_params, run_workflow
 from .mapping import MappingSettings, NavigateArgs, check_workflow, write_maps
 from .navigate_pictures import write_traverse
-from .navigation import (NavigationSettings, check_reach, handout_border, holes_as_hazards, module, operating_box,
+from .navigation import (NavigationSettings, check_reach, handout_border, hole_mask, module, operating_box,
                          planning_layers, planning_params, under_rover, wait_for_pose, within_area, write_plan)
 
 SENSOR_DEVICE = {"tof": "tof", "stereo": "cameras"}
@@ -212,7 +213,8 @@ class Navigation:
     def plan_cycle(self) -> None:
         state, cycle = self.state, self.state.cycle
         self.progress(f"cycle {cycle}: planning, {self.distance_to_goal():.2f} m to go")
-        fused, newest = self.fused_map()
+        seen, holes, newest = self.fused_map()
+        fused = with_hazards(seen, holes)
         start = (state.pose[0], state.pose[1])
         params = planning_params(self.settings, self.cfg.weight)
         plan = plan_path(fused, start, self.goal, params)
@@ -226,24 +228,41 @@ class Navigation:
             elif self.distance_to_goal() > self.settings.confirm_range_m:
                 # Seen from afar (a few noisy pixels): go and look from close by before refusing.
                 plan = plan_path(unseen_near(fused, self.goal, self.settings.confirm_range_m / 2), start, aim, params)
-        if state.route and math.dist(state.route_aim, aim) < 1e-6:
+        closed, look_m = plan, None
+        if plan.reason == "unreachable" and holes.any():
+            # Holes close every way; they are often shadows a nearer look fills (or shows a rock in):
+            # plan through them, and drive only to where the next look sees them from outside the blind ring.
+            through = plan_path(seen, start, aim, params)
+            if through.found:
+                plan, fused = through, seen
+                look_m = self.settings.blind_radius_m.of(self.cfg.sensor) + self.settings.border_margin_m
+                self.progress(f"cycle {cycle}: every way crosses ground no look has seen; going to look at it "
+                              f"from {look_m:.1f} m")
+        if state.route and math.dist(state.route_aim, aim) < 1e-6 and look_m is None:
             plan = keep_route(plan, np.array(state.route), start, fused.spec, params, self.settings.route_hysteresis)
         if plan.found:
             state.route, state.route_aim = plan.waypoints.tolist(), list(aim)
         # What is handed out stays inside what the cycles have mapped, a margin from its border.
         border = handout_border(fused, state.rover, self.settings.blind_radius_m.of(self.cfg.sensor))
         drivable = drivable_prefix(plan.waypoints, fused.spec, border, self.settings.border_margin_m) if plan.found else None
+        crossed = holes_on_path(plan.cells, holes, fused.spec.cell, params.clearance_m) if look_m else None
+        if crossed is not None and crossed.any():
+            drivable = drivable_prefix(drivable.waypoints, fused.spec,
+                                       distance_transform_edt(~crossed) * fused.spec.cell, look_m)
         part = ProductPart(self.product, f"cycle-{cycle:02d}")
         ortho_path = self.product.path / f"cycle-{cycle:02d}" / "ortho.tif"
         ortho = read_geotiff(ortho_path)[0] if ortho_path.exists() else np.full(newest.spec.shape, np.nan)
         write_plan(part, fused, plan, drivable, newest, ortho, start, aim)
         record = state.cycles[-1]
         record["plan"] = {"found": plan.found, "reason": plan.reason, "aim": list(aim), "kept": plan.kept,
-                          "length_m": plan.length_m if plan.found else None}
+                          "length_m": plan.length_m if plan.found else None, "through_unseen": look_m is not None}
         if not plan.found:
             self.fail(plan.reason, plan.message, fused=fused)
         route = clip_length(drivable.waypoints, self.settings.max_drive_m)
         record["drive"] = route.tolist()
+        if look_m is not None and path_length(route) < self.settings.min_progress_m:
+            self.fail(closed.reason, f"{closed.message}; the ways that are left cross ground no look has seen, "
+                      f"looked at from {look_m:.1f} m already", fused=with_hazards(seen, holes))
         if path_length(route) < self.settings.min_progress_m:
             state.stalls += 1
             if state.stalls > 1:
@@ -255,10 +274,11 @@ class Navigation:
         state.phase = "drive"
 
     # ---------------------------------------------------------------------------------- the maps
-    def fused_map(self) -> tuple[MapLayers, MapLayers]:
+    def fused_map(self) -> tuple[MapLayers, np.ndarray, MapLayers]:
         """Every cycle's map over a blank global map spanning rover and goal, each cell as seen from
         the nearest place the rover mapped from (a close look corrects a far one); the rover's own
-        footprint is safe ground, and holes no look filled are hazards. Also the newest map."""
+        footprint is safe ground. Also the holes no look filled that navigation.toml makes hazards,
+        and the newest map."""
         rover = self.state.rover
         maps = [planning_layers(self.product.path / f"cycle-{c['cycle']:02d}", self.settings, rover)
                 for c in self.state.cycles]
@@ -272,7 +292,7 @@ class Navigation:
         fused = MapLayers(fused.spec, np.where(under & fused.hazard, 0.0, cost), fused.hazard & ~under,
                           fused.unknown & ~under)
         start = RoverPose(*self.state.cycles[0]["pose_corrected"])
-        return holes_as_hazards(fused, start, self.cfg.sensor, self.settings), maps[-1]
+        return fused, hole_mask(fused, start, self.cfg.sensor, self.settings), maps[-1]
 
     def _map_cloud_path(self, cycle: int):
         if cycle < 1:
@@ -378,7 +398,8 @@ class Navigation:
     def write_traverse(self, outcome: str, message: str, fused: MapLayers | None = None) -> None:
         state = self.state
         if fused is None and state.cycles:
-            fused = self.fused_map()[0]
+            seen, holes, _ = self.fused_map()
+            fused = with_hazards(seen, holes)
         truth = None
         if self.simulated:
             testbed = self.ctx.devices.testbed

@@ -213,14 +213,21 @@ def handout_border(layers: MapLayers, pose: RoverPose, blind_radius_m: float) ->
     return distance_to_border(binary_fill_holes(seen), layers.spec.cell)
 
 
-def holes_as_hazards(layers: MapLayers, start: RoverPose, sensor: str, settings: NavigationSettings) -> MapLayers:
-    """The map with its holes made hazards (navigation.toml holes), except within the sensor's
-    blind ring round where the rover started mapping: no look could have seen that."""
+def hole_mask(layers: MapLayers, start: RoverPose, sensor: str, settings: NavigationSettings) -> np.ndarray:
+    """The map's holes that navigation.toml holes makes hazards (none when it keeps them unknown),
+    except within the sensor's blind ring round where the rover started mapping: no look could have
+    seen that."""
     if settings.holes.of(sensor) == "unknown":
-        return layers
+        return np.zeros(layers.spec.shape, bool)
     min_cells = max(1, math.ceil(settings.min_hole_m2 / layers.spec.cell ** 2))
     exempt = under_rover(layers.spec, start, settings.blind_radius_m.of(sensor))
-    return with_hazards(layers, enclosed_unknown(layers, min_cells, exempt))
+    return enclosed_unknown(layers, min_cells, exempt)
+
+
+def holes_as_hazards(layers: MapLayers, start: RoverPose, sensor: str, settings: NavigationSettings) -> MapLayers:
+    """The map with its holes made hazards where navigation.toml says so (see hole_mask)."""
+    holes = hole_mask(layers, start, sensor, settings)
+    return with_hazards(layers, holes) if holes.any() else layers
 
 
 def planning_params(settings: NavigationSettings, weight: float | None) -> PlanningParams:

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
-from scipy.ndimage import binary_fill_holes, label
+from scipy.ndimage import binary_fill_holes, distance_transform_edt, label
 
 from .grid import GridSpec
 
@@ -177,6 +177,19 @@ def enclosed_unknown(layers: MapLayers, min_cells: int = 1, exempt: np.ndarray |
     drop = np.bincount(labels.ravel(), minlength=count + 1) < min_cells
     drop[0] = True
     return ~drop[labels]
+
+
+def holes_on_path(cells: np.ndarray, holes: np.ndarray, cell: float, clearance_m: float) -> np.ndarray:
+    """The holes (8-connected parts of the mask) that a path of grid cells (N, 2 rows and columns)
+    passes within clearance_m of: those that would have closed its way as grown hazards."""
+    labels, count = label(holes, structure=np.ones((3, 3), bool))
+    cells = np.asarray(cells, dtype=np.int64).reshape(-1, 2)
+    if count == 0 or len(cells) == 0:
+        return np.zeros(holes.shape, bool)
+    distance, (rows, cols) = distance_transform_edt(~holes, return_indices=True)
+    near = cells[distance[cells[:, 0], cells[:, 1]] <= clearance_m / cell + 1e-9]
+    crossed = labels[rows[near[:, 0], near[:, 1]], cols[near[:, 0], near[:, 1]]]
+    return np.isin(labels, crossed[crossed > 0])
 
 
 def outside_box(spec: GridSpec, box: tuple[float, float, float, float]) -> np.ndarray:
