@@ -38,8 +38,10 @@ from ..protocol import BadRequest
 from ..rasters import read_geotiff
 from ..toolbox.geometry import RoverPose
 from ..toolbox.localisation import merge_clouds
-from ..toolbox.planning import (MapLayers, blank_map_spanning, drivable_prefix, fuse_nearest, keep_route,
-                                holes_on_path, nearest_open_cell, plan_path, with_hazards)
+from ..toolbox.grid import GridSpec
+from ..toolbox.planning import (DrivablePrefix, MapLayers, PlanningParams, PlanResult, blank_map_spanning,
+                                drivable_prefix, fuse_nearest, holes_on_path, keep_route, nearest_open_cell, plan_path,
+                                with_hazards)
 from ..toolbox.planning_paths import path_length
 from ..workflow import WorkflowError, resolve_params, run_workflow
 from .mapping import MappingSettings, NavigateArgs, check_workflow, write_maps
@@ -228,16 +230,10 @@ class Navigation:
             elif self.distance_to_goal() > self.settings.confirm_range_m:
                 # Seen from afar (a few noisy pixels): go and look from close by before refusing.
                 plan = plan_path(unseen_near(fused, self.goal, self.settings.confirm_range_m / 2), start, aim, params)
-        closed, look_m = plan, None
-        if plan.reason == "unreachable" and holes.any():
-            # Holes close every way; they are often shadows a nearer look fills (or shows a rock in):
-            # plan through them, and drive only to where the next look sees them from outside the blind ring.
-            through = plan_path(seen, start, aim, params)
-            if through.found:
-                plan, fused = through, seen
-                look_m = self.settings.blind_radius_m.of(self.cfg.sensor) + self.settings.border_margin_m
-                self.progress(f"cycle {cycle}: every way crosses ground no look has seen; going to look at it "
-                              f"from {look_m:.1f} m")
+        closed = plan
+        plan, look_m = self.through_holes(plan, seen, holes, start, aim, params)
+        if look_m is not None:
+            fused = seen
         if state.route and math.dist(state.route_aim, aim) < 1e-6 and look_m is None:
             plan = keep_route(plan, np.array(state.route), start, fused.spec, params, self.settings.route_hysteresis)
         if plan.found:
@@ -245,10 +241,8 @@ class Navigation:
         # What is handed out stays inside what the cycles have mapped, a margin from its border.
         border = handout_border(fused, state.rover, self.settings.blind_radius_m.of(self.cfg.sensor))
         drivable = drivable_prefix(plan.waypoints, fused.spec, border, self.settings.border_margin_m) if plan.found else None
-        crossed = holes_on_path(plan.cells, holes, fused.spec.cell, params.clearance_m) if look_m else None
-        if crossed is not None and crossed.any():
-            drivable = drivable_prefix(drivable.waypoints, fused.spec,
-                                       distance_transform_edt(~crossed) * fused.spec.cell, look_m)
+        if look_m is not None:
+            drivable = short_of_holes(drivable, plan, holes, fused.spec, params.clearance_m, look_m)
         part = ProductPart(self.product, f"cycle-{cycle:02d}")
         ortho_path = self.product.path / f"cycle-{cycle:02d}" / "ortho.tif"
         ortho = read_geotiff(ortho_path)[0] if ortho_path.exists() else np.full(newest.spec.shape, np.nan)
@@ -272,6 +266,21 @@ class Navigation:
         state.stalls = 0
         state.to_drive = route[1:].tolist()
         state.phase = "drive"
+
+    def through_holes(self, plan: PlanResult, seen: MapLayers, holes: np.ndarray, start: tuple[float, float],
+                      aim: tuple[float, float], params: PlanningParams) -> tuple[PlanResult, float | None]:
+        """When holes close every way: the plan through them, and how far from them the rover stops to
+        look again, from outside its blind ring (holes are often shadows a nearer look fills, or shows
+        a rock in). Otherwise the plan as it was, and None."""
+        if plan.reason != "unreachable" or not holes.any():
+            return plan, None
+        through = plan_path(seen, start, aim, params)
+        if not through.found:
+            return plan, None
+        look_m = self.settings.blind_radius_m.of(self.cfg.sensor) + self.settings.border_margin_m
+        self.progress(f"cycle {self.state.cycle}: every way crosses ground no look has seen; going to look at it "
+                      f"from {look_m:.1f} m")
+        return through, look_m
 
     # ---------------------------------------------------------------------------------- the maps
     def fused_map(self) -> tuple[MapLayers, np.ndarray, MapLayers]:
@@ -413,6 +422,15 @@ class Navigation:
             for i, (est, odo) in enumerate(zip(state.estimated_path, state.odometry_path)):
                 writer.writerow([i, f"{est[0]:.4f}", f"{est[1]:.4f}", f"{math.degrees(est[2]):.3f}",
                                  f"{odo[0]:.4f}", f"{odo[1]:.4f}", f"{math.degrees(odo[2]):.3f}"])
+
+
+def short_of_holes(drivable: DrivablePrefix, plan: PlanResult, holes: np.ndarray, spec: GridSpec, clearance_m: float,
+                   look_m: float) -> DrivablePrefix:
+    """The drivable part cut where it first comes within look_m of the holes the plan crosses."""
+    crossed = holes_on_path(plan.cells, holes, spec.cell, clearance_m)
+    if not crossed.any():
+        return drivable
+    return drivable_prefix(drivable.waypoints, spec, distance_transform_edt(~crossed) * spec.cell, look_m)
 
 
 def unseen_near(layers: MapLayers, point: tuple[float, float], radius: float) -> MapLayers:
