@@ -40,8 +40,8 @@ class MappingSettings(Settings):
     min_confidence: int = Field(16384, ge=0, le=65535, description="SR4000 pixels below are dropped")
     max_range_m: float = Field(4.8, gt=0, description="points beyond this range are dropped")
     max_reach_cells: float = Field(3.0, ge=0, le=50, description="TOF DEM holes are filled only this close to data")
-    stereo_max_reach_cells: float = Field(0.0, ge=0, le=50, description="the same for stereo DEMs: 0, because "
-                                          "their small holes are mostly rocks the pair could not match")
+    stereo_max_reach_cells: float = Field(3.0, ge=0, le=50, description="the same for stereo DEMs (whose small "
+                                          "holes are often rocks the pair could not match)")
     slope_limit_deg: float = Field(20.0, gt=0, lt=90)
     step_limit: float = Field(0.10, gt=0)
     tof_step_min_cells: int = Field(2, ge=1, le=25, description="a TOF step counts when this many cells "
