@@ -57,7 +57,8 @@ class NavigateConfig(CommandConfig):
     to: Point = Field(..., description="goal X,Y in the world frame, metres")
     sensor: Literal["tof", "stereo"] = Field("tof", description="which sensor maps the way")
     tolerance: float = Field(0.3, gt=0, le=10, description="arrived when the estimated position is this close, metres")
-    max_steps: int = Field(12, ge=1, le=100, description="mapping cycles at most")
+    max_steps: int = Field(12, ge=1, le=100, description="cycles of map, plan and drive at most; after the last "
+                           "drive the rover maps once more to see whether it arrived")
     weight: float | None = Field(None, ge=0, le=1, description="distance weight w; default navigation.toml")
     output: SafeName | None = Field(None, description="product name; default navigate-TIME")
 
@@ -150,13 +151,14 @@ class Navigation:
                 self.drive()
                 state.phase = "map"
                 self.checkpoint()
-            if state.cycle >= self.cfg.max_steps:
-                self.fail("max_steps", f"not at the goal after {state.cycle} cycles (--max-steps): "
-                          f"{self.distance_to_goal():.2f} m to go")
             state.cycle += 1
             self.map_cycle()
             if self.distance_to_goal() <= self.cfg.tolerance:
                 return self.finish()
+            # After the last drive the rover still maps once more: only a fresh look says whether it arrived.
+            if state.cycle > self.cfg.max_steps:
+                self.fail("max_steps", f"not at the goal after {self.cfg.max_steps} cycles (--max-steps): "
+                          f"{self.distance_to_goal():.2f} m to go")
             self.plan_cycle()
             self.checkpoint()
 
