@@ -218,7 +218,7 @@ class Navigation:
         state, cycle = self.state, self.state.cycle
         self.progress(f"cycle {cycle}: planning, {self.distance_to_goal():.2f} m to go")
         seen, holes, newest = self.fused_map()
-        fused = with_hazards(seen, holes)
+        fused = closed_map = with_hazards(seen, holes)
         start = (state.pose[0], state.pose[1])
         params = planning_params(self.settings, self.cfg.weight)
         plan = plan_path(fused, start, self.goal, params)
@@ -258,7 +258,7 @@ class Navigation:
         record["drive"] = route.tolist()
         if look_m is not None and path_length(route) < self.settings.min_progress_m:
             self.fail(closed.reason, f"{closed.message}; the ways that are left cross ground no look has seen, "
-                      f"looked at from {look_m:.1f} m already", fused=with_hazards(seen, holes))
+                      f"looked at from {look_m:.1f} m already", fused=closed_map)
         if path_length(route) < self.settings.min_progress_m:
             state.stalls += 1
             if state.stalls > 1:

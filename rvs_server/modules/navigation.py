@@ -28,8 +28,8 @@ from ..toolbox.geometry import RoverPose
 from ..toolbox.grid import GridSpec
 from ..toolbox.hazard import HAZARD, UNKNOWN
 from ..toolbox.planning import (MapLayers, PlanningParams, blank_map_spanning, cells_to_world, distance_to_border,
-                                drivable_prefix, enclosed_unknown, fuse_maps, outside_box, plan_path, terrain_cost,
-                                with_hazards)
+                                drivable_prefix, enclosed_unknown, fuse_maps, inside_box, outside_box, plan_path,
+                                terrain_cost, with_hazards)
 from .grid_canvas import Canvas
 
 T = TypeVar("T")
@@ -273,7 +273,7 @@ def check_reach(server: Any, start: tuple[float, float] | None, goal: tuple[floa
         raise BadRequest(f"--to {goal[0]},{goal[1]}: must be finite numbers")
     box = operating_box(server)
     for option, point in (("--from", start), ("--to", goal)):
-        if box is not None and point is not None and outside_box_point(point, box):
+        if box is not None and point is not None and not inside_box(*point, box):
             raise BadRequest(f"{option} {point[0]:g},{point[1]:g} is outside the operating area: x {box[0]:g}:"
                              f"{box[1]:g}, y {box[2]:g}:{box[3]:g} (navigation.toml operating_area)")
     if start is None:
@@ -283,10 +283,6 @@ def check_reach(server: Any, start: tuple[float, float] | None, goal: tuple[floa
     if distance > settings.max_reach_m:
         raise BadRequest(f"--to {goal[0]:g},{goal[1]:g} is {distance:.1f} m from the start; the planner reaches "
                          f"{settings.max_reach_m:g} m (navigation.toml max_reach_m)")
-
-
-def outside_box_point(point: tuple[float, float], box: tuple[float, float, float, float]) -> bool:
-    return not (box[0] <= point[0] <= box[1] and box[2] <= point[1] <= box[3])
 
 
 def _validate_plan(server: Any, cfg: PlanPathConfig) -> None:

@@ -22,7 +22,8 @@ from .grid import GridSpec
 from .planning_costs import (UNKNOWN_POLICIES, InflatedHazards, UnknownPolicy, apply_unknown_policy,
                              inflate_hazards, proximity_cost, terrain_cost)
 from .planning_fusion import (MapLayers, blank_map, blank_map_spanning, enclosed_unknown, fuse_maps, fuse_nearest,
-                              holes_on_path, outside_box, resample_onto, with_hazards)
+                              holes_on_path, inside_box, outside_box, resample_onto,
+                              with_hazards)
 from .planning_paths import (DrivablePrefix, cells_to_world, distance_to_border, douglas_peucker,
                              drivable_prefix, path_length, segment_cells, segment_is_clear, simplify_path,
                              world_to_cells, world_to_grid)
@@ -34,7 +35,7 @@ __all__ = [
     "UnknownPolicy", "UNKNOWN_POLICIES",
     "astar", "dijkstra_reference", "path_cost", "SearchResult",
     "MapLayers", "blank_map", "blank_map_spanning", "resample_onto", "fuse_maps", "fuse_nearest",
-    "enclosed_unknown", "holes_on_path", "outside_box", "with_hazards",
+    "enclosed_unknown", "holes_on_path", "inside_box", "outside_box", "with_hazards",
     "cells_to_world", "world_to_cells", "path_length", "douglas_peucker", "segment_cells",
     "segment_is_clear", "simplify_path", "distance_to_border", "drivable_prefix", "DrivablePrefix",
 ]

@@ -192,11 +192,16 @@ def holes_on_path(cells: np.ndarray, holes: np.ndarray, cell: float, clearance_m
     return np.isin(labels, crossed[crossed > 0])
 
 
+def inside_box(x, y, box: tuple[float, float, float, float]) -> np.ndarray:
+    """Whether world points (arrays broadcast) lie in the box (x_min, x_max, y_min, y_max), metres."""
+    x_min, x_max, y_min, y_max = box
+    return (np.asarray(x) >= x_min) & (np.asarray(x) <= x_max) & (np.asarray(y) >= y_min) & (np.asarray(y) <= y_max)
+
+
 def outside_box(spec: GridSpec, box: tuple[float, float, float, float]) -> np.ndarray:
     """Cells whose centre lies outside the box (x_min, x_max, y_min, y_max), world metres."""
     xs, ys = spec.centres()
-    x_min, x_max, y_min, y_max = box
-    return ~(((ys >= y_min) & (ys <= y_max))[:, None] & ((xs >= x_min) & (xs <= x_max))[None, :])
+    return ~inside_box(xs[None, :], ys[:, None], box)
 
 
 def with_hazards(layers: MapLayers, mask: np.ndarray) -> MapLayers:
