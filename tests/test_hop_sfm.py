@@ -83,7 +83,9 @@ def test_sfm_registers_the_hop_and_finds_its_trajectory(hop, sfm, to_world):
 
 def test_the_incremental_mapper_finds_the_same_trajectory(hop, sfm, tmp_path):
     """The paper's incremental mapping stays available (hopping.toml sfm_mapper) and agrees on this hop."""
-    config = hop_sfm.SfmConfig(mapper="incremental")
+    # One thread makes it deterministic. With every core, the thread schedule varies the run, and this hop
+    # came out bent in 2 of 7 runs here and once in CI (RMS 0.2 of its extent): the chance the module docstring names.
+    config = hop_sfm.SfmConfig(mapper="incremental", num_threads=1)
     incremental = hop_sfm.reconstruct_hop(hop.frames, hop.timestamps, hop.camera, tmp_path, config)
     both = sfm.registered & incremental.registered
     assert both.mean() >= 0.8
