@@ -94,6 +94,27 @@ def test_left_right_check_drops_the_occluded_strip():
     assert not plain.any()                                             # nothing to agree with: nothing valid
 
 
+def test_small_featureless_patches_are_matched_and_large_areas_masked():
+    """A smooth facet on a surface (a flat patch moving with it) is matched across from its edges; a
+    large featureless area (sky) and a block-wide margin round it are not matched at all."""
+    rng = np.random.default_rng(4)
+    left = texture(rng, (HEIGHT, WIDTH))
+    left[:60] = 0.0                                                   # sky: 60 x 320 px of nothing
+    left[120:132, 150:162] = left[120:132, 150:162].mean()            # a smooth facet, 12 x 12 px
+    right = shifted(left, np.full(HEIGHT, 20.0))
+    config = S.SgbmConfig(num_disparities=64)
+    usable = S.textured(left.astype(np.uint8), config)
+    assert usable[120:132, 150:162].all()
+    assert not usable[:60 + config.block_size // 2].any()            # every block holding some sky
+    assert usable[60 + config.block_size:].all()
+    disparity = np.where(usable, S.sgbm_disparity(left, right, config), np.nan)
+    facet = disparity[120:132, 150:162]
+    assert np.isfinite(facet).mean() > 0.9
+    assert np.nanmax(np.abs(facet - 20.0)) < 0.5
+    # The facet would be masked if any featureless area were: the old rule lost whole rock faces.
+    assert not S.textured(left.astype(np.uint8), S.SgbmConfig(featureless_area_px=1))[120:132, 150:162].any()
+
+
 def test_disparity_to_points_on_an_ideal_rig():
     rect = S.rectification(ideal_rig())
     disparity = np.full((HEIGHT, WIDTH), 20.0, np.float32)

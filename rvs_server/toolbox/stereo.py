@@ -72,6 +72,7 @@ class SgbmConfig:
     num_disparities: int = 128
     block_size: int = 5
     min_texture: float = 1.5          # grey levels of spread a block needs to be matched at all
+    featureless_area_px: int = 100    # featureless areas at least this large are masked (see textured)
     uniqueness_ratio: int = 10
     speckle_window_size: int = 100
     speckle_range: int = 2
@@ -105,16 +106,24 @@ def stereo_points(left: np.ndarray, right: np.ndarray, rect: Rectification,
 
 
 def textured(image: np.ndarray, config: "SgbmConfig") -> np.ndarray:
-    """False in and within a block of featureless areas (sky, the black beyond the terrain's edge,
-    deep shadow): no block there has anything to match, and a block straddling its edge matches
-    the edge at whatever disparity a half-pixel of misalignment favours."""
+    """False in and within a block of large featureless areas (sky, the black beyond the terrain's
+    edge, deep shadow): no block there has anything to match, and a block straddling its edge matches
+    the edge at whatever disparity a half-pixel of misalignment favours.
+
+    Featureless patches smaller than config.featureless_area_px stay: they are surface detail, such as
+    a rock's smooth facet, whose edges lie on the surface and look the same to both cameras, and
+    SGBM's paths carry the disparity across them from those edges. Masking them too (with the margin)
+    took whole rocks out of the stereo maps, and the DEM's hole filling then made them flat ground."""
     grey = np.asarray(image, np.float32)
     window = (config.block_size, config.block_size)
     mean = cv2.boxFilter(grey, -1, window)
     spread = np.sqrt(np.maximum(cv2.boxFilter(grey * grey, -1, window) - mean * mean, 0.0))
-    dead = (spread < config.min_texture).astype(np.uint8)
+    _, labels, stats, _ = cv2.connectedComponentsWithStats((spread < config.min_texture).astype(np.uint8),
+                                                           connectivity=8)
+    large = stats[:, cv2.CC_STAT_AREA] >= config.featureless_area_px
+    large[0] = False                                   # label 0: the textured rest of the image
     size = 2 * config.block_size + 1
-    return ~cv2.dilate(dead, np.ones((size, size), np.uint8)).astype(bool)
+    return ~cv2.dilate(large[labels].astype(np.uint8), np.ones((size, size), np.uint8)).astype(bool)
 
 
 def image_coverage(maps: tuple[np.ndarray, np.ndarray], size: tuple[int, int], margin: int) -> np.ndarray:
