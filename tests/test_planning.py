@@ -516,6 +516,8 @@ def test_fuse_nearest_takes_the_closest_look_but_keeps_close_hazards():
             MapLayers(spec, np.zeros(spec.shape), near_says_clear, np.zeros(spec.shape, bool))]
     fused = fuse_nearest(blank, maps, [(0.0, 0.5), (3.5, 0.5)])
     assert not fused.hazard.any() and not fused.unknown.any()
+    xs, _ = spec.centres()
+    assert np.allclose(fused.seen_from[5], np.minimum(np.hypot(xs, 0.05), np.hypot(xs - 3.5, 0.05)))
     # The conservative rule would keep the far, noisy reading.
     assert fuse_maps(blank, maps).hazard[:, 30].all()
     # A hazard seen from within the sticky range stays even when a nearer look misses it.
@@ -606,3 +608,35 @@ def test_holes_on_path_are_the_holes_a_path_passes_within_the_clearance_of():
     assert (crossed == expected).all()
     assert not holes_on_path(path, holes, cell=0.1, clearance_m=0.1).any()
     assert not holes_on_path(path, np.zeros_like(holes), cell=0.1, clearance_m=0.3).any()
+
+
+def test_unconfirmed_ground_is_planned_through_when_it_closes_the_way_or_makes_a_long_detour():
+    from rvs_server.toolbox.planning import plan_through_unconfirmed
+    spec = GridSpec(0.0, 0.0, 0.1, 60, 100)             # 10 m east-west, 6 m north-south
+    params = PlanningParams(rover_radius_m=0.2, hazard_margin_m=0.0, proximity_cost=0.0)
+    wall = np.zeros(spec.shape, bool)
+    wall[:50, 50] = True                                 # x = 5.05, from the south edge to y = 5 m
+    seen = MapLayers(spec, np.zeros(spec.shape), wall, np.zeros(spec.shape, bool))
+    start, goal = (1.0, 1.0), (9.0, 1.0)
+    closed = plan_path(seen, start, goal, params)
+    assert closed.found and closed.length_m > 11.5       # round the wall's north end
+    # The wall seen only from afar: the way through (8 m) saves a long detour.
+    through = plan_through_unconfirmed(closed, seen, wall, start, goal, params, detour=0.25)
+    assert through is not None and through.length_m == pytest.approx(8.0, abs=0.05)
+    # A detour within the allowance stands; so does a plan when nothing is unconfirmed.
+    assert plan_through_unconfirmed(closed, seen, wall, start, goal, params, detour=1.0) is None
+    assert plan_through_unconfirmed(closed, seen, np.zeros(spec.shape, bool), start, goal, params, 0.25) is None
+    # Walled in on every side, the unconfirmed part is the only way.
+    wall[:, 50] = True
+    boxed = MapLayers(spec, np.zeros(spec.shape), wall, np.zeros(spec.shape, bool))
+    closed = plan_path(boxed, start, goal, params)
+    assert closed.reason == "unreachable"
+    part = np.zeros(spec.shape, bool)
+    part[20:30, 50] = True                               # only one stretch of the wall is a far guess
+    through = plan_through_unconfirmed(closed, boxed, part, start, goal, params, detour=0.25)
+    assert through is not None
+    assert np.isin(through.cells[:, 0][through.cells[:, 1] == 50], np.arange(20, 30)).all()
+    # Other refusals (a goal on a hazard) are not for looking again.
+    on_rock = plan_path(boxed, start, (5.05, 1.0), params)
+    assert on_rock.reason == "goal_blocked"
+    assert plan_through_unconfirmed(on_rock, boxed, part, start, (5.05, 1.0), params, 0.25) is None

@@ -40,8 +40,8 @@ from ..toolbox.geometry import RoverPose
 from ..toolbox.localisation import merge_clouds
 from ..toolbox.grid import GridSpec
 from ..toolbox.planning import (DrivablePrefix, MapLayers, PlanningParams, PlanResult, blank_map_spanning,
-                                drivable_prefix, fuse_nearest, holes_on_path, keep_route, nearest_open_cell, plan_path,
-                                with_hazards)
+                                drivable_prefix, fuse_nearest, holes_on_path, keep_route, nearest_open_cell,
+                                outside_box, plan_path, plan_through_unconfirmed, with_hazards, with_unknown)
 from ..toolbox.planning_paths import path_length
 from ..workflow import WorkflowError, resolve_params, run_workflow
 from .mapping import MappingSettings, NavigateArgs, check_workflow, write_maps
@@ -217,8 +217,8 @@ class Navigation:
     def plan_cycle(self) -> None:
         state, cycle = self.state, self.state.cycle
         self.progress(f"cycle {cycle}: planning, {self.distance_to_goal():.2f} m to go")
-        seen, holes, newest = self.fused_map()
-        fused = closed_map = with_hazards(seen, holes)
+        seen, unconfirmed, newest = self.fused_map()
+        fused = closed_map = with_hazards(seen, unconfirmed)
         start = (state.pose[0], state.pose[1])
         params = planning_params(self.settings, self.cfg.weight)
         plan = plan_path(fused, start, self.goal, params)
@@ -233,32 +233,28 @@ class Navigation:
                 # Seen from afar (a few noisy pixels): go and look from close by before refusing.
                 plan = plan_path(unseen_near(fused, self.goal, self.settings.confirm_range_m / 2), start, aim, params)
         closed = plan
-        plan, look_m = self.through_holes(plan, seen, holes, start, aim, params)
+        plan, look_m = self.look_again(plan, seen, unconfirmed, start, aim, params)
         if look_m is not None:
-            fused = seen
-        if state.route and math.dist(state.route_aim, aim) < 1e-6 and look_m is None:
+            fused = with_unknown(seen, unconfirmed)
+        elif state.route and math.dist(state.route_aim, aim) < 1e-6:
             plan = keep_route(plan, np.array(state.route), start, fused.spec, params, self.settings.route_hysteresis)
         if plan.found:
             state.route, state.route_aim = plan.waypoints.tolist(), list(aim)
-        # What is handed out stays inside what the cycles have mapped, a margin from its border.
-        border = handout_border(fused, state.rover, self.settings.blind_radius_m.of(self.cfg.sensor))
-        drivable = drivable_prefix(plan.waypoints, fused.spec, border, self.settings.border_margin_m) if plan.found else None
-        if look_m is not None:
-            drivable = short_of_holes(drivable, plan, holes, fused.spec, params.clearance_m, look_m)
+        drivable = self.handout(plan, fused, unconfirmed, look_m, params)
         part = ProductPart(self.product, f"cycle-{cycle:02d}")
         ortho_path = self.product.path / f"cycle-{cycle:02d}" / "ortho.tif"
         ortho = read_geotiff(ortho_path)[0] if ortho_path.exists() else np.full(newest.spec.shape, np.nan)
         write_plan(part, fused, plan, drivable, newest, ortho, start, aim)
         record = state.cycles[-1]
         record["plan"] = {"found": plan.found, "reason": plan.reason, "aim": list(aim), "kept": plan.kept,
-                          "length_m": plan.length_m if plan.found else None, "through_unseen": look_m is not None}
+                          "length_m": plan.length_m if plan.found else None, "through_unconfirmed": look_m is not None}
         if not plan.found:
             self.fail(plan.reason, plan.message, fused=fused)
         route = clip_length(drivable.waypoints, self.settings.max_drive_m)
         record["drive"] = route.tolist()
         if look_m is not None and path_length(route) < self.settings.min_progress_m:
-            self.fail(closed.reason, f"{closed.message}; the ways that are left cross ground no look has seen, "
-                      f"looked at from {look_m:.1f} m already", fused=closed_map)
+            self.fail(closed.reason, f"{closed.message}; the ways that are left cross ground no close look has "
+                      f"confirmed, looked at from {look_m:.1f} m already", fused=closed_map)
         if path_length(route) < self.settings.min_progress_m:
             state.stalls += 1
             if state.stalls > 1:
@@ -269,41 +265,67 @@ class Navigation:
         state.to_drive = route[1:].tolist()
         state.phase = "drive"
 
-    def through_holes(self, plan: PlanResult, seen: MapLayers, holes: np.ndarray, start: tuple[float, float],
-                      aim: tuple[float, float], params: PlanningParams) -> tuple[PlanResult, float | None]:
-        """When holes close every way: the plan through them, and how far from them the rover stops to
-        look again, from outside its blind ring (holes are often shadows a nearer look fills, or shows
-        a rock in). Otherwise the plan as it was, and None."""
-        if plan.reason != "unreachable" or not holes.any():
-            return plan, None
-        through = plan_path(seen, start, aim, params)
-        if not through.found:
-            return plan, None
+    def look_again(self, closed: PlanResult, seen: MapLayers, unconfirmed: np.ndarray, start: tuple[float, float],
+                   aim: tuple[float, float], params: PlanningParams) -> tuple[PlanResult, float | None]:
+        """When ground no close look has confirmed (holes; hazards seen only from beyond confirm_range_m)
+        closes every way or makes a long detour: the plan through it, and how far from it the rover stops
+        to look again, outside its blind ring. Far hazards are often range noise and holes often
+        shadows; a close look clears them or confirms a rock. Otherwise the plan as it was, and None."""
+        through = plan_through_unconfirmed(closed, seen, unconfirmed, start, aim, params,
+                                           self.settings.look_again_detour)
+        if through is None:
+            return closed, None
         look_m = self.settings.blind_radius_m.of(self.cfg.sensor) + self.settings.border_margin_m
-        self.progress(f"cycle {self.state.cycle}: every way crosses ground no look has seen; going to look at it "
+        open_map = with_unknown(seen, unconfirmed)
+        if closed.found and self.drive_length(self.handout(through, open_map, unconfirmed, look_m, params)) \
+                < self.settings.min_progress_m:
+            return closed, None       # already as close as a look needs to be, and it did not clear the way
+        why = ("every way crosses" if not closed.found else
+               f"the way round ({closed.length_m:.1f} m) is much longer than the way through")
+        self.progress(f"cycle {self.state.cycle}: {why} ground no close look has confirmed; going to look at it "
                       f"from {look_m:.1f} m")
         return through, look_m
+
+    def handout(self, plan: PlanResult, layers: MapLayers, unconfirmed: np.ndarray, look_m: float | None,
+                params: PlanningParams) -> DrivablePrefix | None:
+        """The part of the plan to drive: inside what the cycles have mapped, a margin from its border,
+        and, when it goes to look again, short of the unconfirmed ground it crosses."""
+        if not plan.found:
+            return None
+        border = handout_border(layers, self.state.rover, self.settings.blind_radius_m.of(self.cfg.sensor))
+        drivable = drivable_prefix(plan.waypoints, layers.spec, border, self.settings.border_margin_m)
+        if look_m is not None:
+            drivable = short_of_holes(drivable, plan, unconfirmed, layers.spec, params.clearance_m, look_m)
+        return drivable
+
+    def drive_length(self, drivable: DrivablePrefix | None) -> float:
+        return 0.0 if drivable is None else path_length(clip_length(drivable.waypoints, self.settings.max_drive_m))
 
     # ---------------------------------------------------------------------------------- the maps
     def fused_map(self) -> tuple[MapLayers, np.ndarray, MapLayers]:
         """Every cycle's map over a blank global map spanning rover and goal, each cell as seen from
         the nearest place the rover mapped from (a close look corrects a far one); the rover's own
-        footprint is safe ground. Also the holes no look filled that navigation.toml makes hazards,
-        and the newest map."""
+        footprint is safe ground. Also what no close look has confirmed: the holes no look filled
+        that navigation.toml makes hazards, and hazards seen only from beyond confirm_range_m. And
+        the newest map."""
         rover = self.state.rover
         maps = [planning_layers(self.product.path / f"cycle-{c['cycle']:02d}", self.settings, rover)
                 for c in self.state.cycles]
         blank = blank_map_spanning((rover.x, rover.y), self.goal, self.settings.global_cell_m,
                                    self.settings.global_margin_m, maps)
-        fused = fuse_nearest(blank, maps, [c["pose_corrected"][:2] for c in self.state.cycles],
-                             self.settings.sticky_range_m)
-        fused = within_area(fused, operating_box(self.server))
+        nearest = fuse_nearest(blank, maps, [c["pose_corrected"][:2] for c in self.state.cycles],
+                               self.settings.sticky_range_m)
+        box = operating_box(self.server)
+        fused = within_area(nearest, box)
         under = under_rover(fused.spec, rover, self.settings.rover_radius_m)
         cost = np.where(under, np.where(np.isfinite(fused.cost), fused.cost, 0.0), fused.cost)
         fused = MapLayers(fused.spec, np.where(under & fused.hazard, 0.0, cost), fused.hazard & ~under,
                           fused.unknown & ~under)
+        far = nearest.hazard & fused.hazard & (nearest.seen_from > self.settings.confirm_range_m)
+        if box is not None:
+            far &= ~outside_box(fused.spec, box)     # the operating area's edge is no sensor's guess
         start = RoverPose(*self.state.cycles[0]["pose_corrected"])
-        return fused, hole_mask(fused, start, self.cfg.sensor, self.settings), maps[-1]
+        return fused, hole_mask(fused, start, self.cfg.sensor, self.settings) | far, maps[-1]
 
     def _map_cloud_path(self, cycle: int):
         if cycle < 1:
@@ -437,8 +459,7 @@ def short_of_holes(drivable: DrivablePrefix, plan: PlanResult, holes: np.ndarray
 
 def unseen_near(layers: MapLayers, point: tuple[float, float], radius: float) -> MapLayers:
     """The map with everything within radius of a point made unknown again."""
-    near = under_rover(layers.spec, RoverPose(*point), radius)
-    return MapLayers(layers.spec, np.where(near, np.nan, layers.cost), layers.hazard & ~near, layers.unknown | near)
+    return with_unknown(layers, under_rover(layers.spec, RoverPose(*point), radius))
 
 
 def clip_length(points: np.ndarray, max_length: float) -> np.ndarray:

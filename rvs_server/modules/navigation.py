@@ -128,8 +128,12 @@ class NavigationSettings(Settings):
     min_hole_m2: float = Field(0.01, ge=0, description="smaller holes stay unknown")
     sticky_range_m: float = Field(2.5, ge=0, description="a hazard any cycle saw from this close stays, "
                                   "whatever a nearer look says")
-    confirm_range_m: float = Field(3.0, gt=0, description="a goal seen blocked from farther than this is "
+    confirm_range_m: float = Field(3.0, gt=0, description="a hazard seen only from farther than this is "
+                                   "unconfirmed (see look_again_detour), and a goal seen blocked from farther is "
                                    "approached and looked at again before navigate refuses it")
+    look_again_detour: float = Field(0.25, ge=0, description="when the way round unconfirmed ground (holes, "
+                                     "hazards seen only from afar) is this much longer than the way through it, "
+                                     "or there is no way round, the rover drives towards it and looks again")
     pose_timeout_s: float = Field(900.0, gt=0, description="how long navigate waits for the GNC's pose")
 
 

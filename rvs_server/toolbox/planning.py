@@ -21,9 +21,9 @@ import numpy as np
 from .grid import GridSpec
 from .planning_costs import (UNKNOWN_POLICIES, InflatedHazards, UnknownPolicy, apply_unknown_policy,
                              inflate_hazards, proximity_cost, terrain_cost)
-from .planning_fusion import (MapLayers, blank_map, blank_map_spanning, enclosed_unknown, fuse_maps, fuse_nearest,
-                              holes_on_path, inside_box, outside_box, resample_onto,
-                              with_hazards)
+from .planning_fusion import (FusedLayers, MapLayers, blank_map, blank_map_spanning, enclosed_unknown, fuse_maps,
+                              fuse_nearest, holes_on_path, inside_box, outside_box, resample_onto, with_hazards,
+                              with_unknown)
 from .planning_paths import (DrivablePrefix, cells_to_world, distance_to_border, douglas_peucker,
                              drivable_prefix, path_length, segment_cells, segment_is_clear, simplify_path,
                              world_to_cells, world_to_grid)
@@ -31,11 +31,12 @@ from .planning_search import SearchResult, astar, cost_per_metre, dijkstra_refer
 
 __all__ = [
     "PlanningParams", "PlanResult", "plan_path", "planning_cost", "polyline_cost", "keep_route",
+    "plan_through_unconfirmed",
     "terrain_cost", "inflate_hazards", "InflatedHazards", "proximity_cost", "apply_unknown_policy",
     "UnknownPolicy", "UNKNOWN_POLICIES",
     "astar", "dijkstra_reference", "path_cost", "SearchResult",
     "MapLayers", "blank_map", "blank_map_spanning", "resample_onto", "fuse_maps", "fuse_nearest",
-    "enclosed_unknown", "holes_on_path", "inside_box", "outside_box", "with_hazards",
+    "enclosed_unknown", "holes_on_path", "inside_box", "outside_box", "with_hazards", "with_unknown", "FusedLayers",
     "cells_to_world", "world_to_cells", "path_length", "douglas_peucker", "segment_cells",
     "segment_is_clear", "simplify_path", "distance_to_border", "drivable_prefix", "DrivablePrefix",
 ]
@@ -167,6 +168,21 @@ def keep_route(plan: PlanResult, previous_xy: np.ndarray | None, start_xy: tuple
     return PlanResult(found=True, reason="", message="", cells=cells, waypoint_cells=rc, waypoints=route,
                       cost=old, length_m=path_length(route), cost_grid=plan.cost_grid, hazards=plan.hazards,
                       kept=True)
+
+
+def plan_through_unconfirmed(closed: PlanResult, seen: MapLayers, unconfirmed: np.ndarray,
+                             start_xy: tuple[float, float], goal_xy: tuple[float, float], params: PlanningParams,
+                             detour: float) -> PlanResult | None:
+    """The plan with the unconfirmed cells (guesses a closer look may clear: holes, hazards seen only
+    from afar) as unknown ground, when they close every way (`closed` is unreachable) or the way round
+    them is more than `detour` (a fraction) longer than the way through. Otherwise None: `closed`,
+    planned with them as hazards, stands."""
+    if not unconfirmed.any() or not (closed.found or closed.reason == "unreachable"):
+        return None
+    through = plan_path(with_unknown(seen, unconfirmed), start_xy, goal_xy, params)
+    if not through.found or (closed.found and closed.length_m <= (1.0 + detour) * through.length_m):
+        return None
+    return through
 
 
 def nearest_open_cell(cost_grid: np.ndarray, spec: GridSpec, goal_xy: tuple[float, float],

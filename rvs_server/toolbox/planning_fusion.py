@@ -14,7 +14,7 @@ the start, the goal and the local maps, with a margin, as in the thesis's `navig
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Sequence
 
 import numpy as np
@@ -58,6 +58,13 @@ class MapLayers:
         cost = np.asarray(cost, dtype=np.float64)
         hazard = np.zeros(cost.shape, dtype=bool) if hazard is None else hazard
         return cls(spec, cost, hazard, np.isnan(cost))
+
+
+@dataclass(frozen=True)
+class FusedLayers(MapLayers):
+    """Fused layers, and per cell how far from it the look that decided it stood (inf: no look)."""
+
+    seen_from: np.ndarray = field(default=None, repr=False)
 
 
 def blank_map(spec: GridSpec) -> MapLayers:
@@ -129,14 +136,15 @@ def fuse_maps(global_map: MapLayers, local_maps: Sequence[MapLayers]) -> MapLaye
 
 
 def fuse_nearest(global_map: MapLayers, local_maps: Sequence[MapLayers],
-                 observers_xy: Sequence[Sequence[float]], sticky_range_m: float = 0.0) -> MapLayers:
+                 observers_xy: Sequence[Sequence[float]], sticky_range_m: float = 0.0) -> FusedLayers:
     """The global map with each cell taken from the local map whose observer stood nearest to it.
 
     For a rover that maps as it goes: a rock seen at the edge of one map (far, noisy, a few pixels)
     is seen again from close by later, and the close look should decide. Unlike `fuse_maps`, a later,
     nearer map can clear a hazard, and unknown in one map never hides what another knows. A hazard
     any map saw from within `sticky_range_m` stays, whoever saw the cell nearest: a close look is
-    trusted whichever came first. Cells no local map knows keep the global map's layers."""
+    trusted whichever came first. Cells no local map knows keep the global map's layers. seen_from
+    is the distance from each cell to the observer that decided it."""
     if len(local_maps) != len(observers_xy):
         raise ValueError(f"{len(local_maps)} maps but {len(observers_xy)} observer positions")
     spec = global_map.spec
@@ -155,7 +163,7 @@ def fuse_nearest(global_map: MapLayers, local_maps: Sequence[MapLayers],
         close_hazard |= part.hazard & (distance <= sticky_range_m)
     hazard |= close_hazard
     unknown &= ~close_hazard
-    return MapLayers(spec, np.where(hazard | unknown, np.nan, cost), hazard, unknown)
+    return FusedLayers(spec, np.where(hazard | unknown, np.nan, cost), hazard, unknown, seen_from=best)
 
 
 def enclosed_unknown(layers: MapLayers, min_cells: int = 1, exempt: np.ndarray | None = None) -> np.ndarray:
@@ -207,3 +215,8 @@ def outside_box(spec: GridSpec, box: tuple[float, float, float, float]) -> np.nd
 def with_hazards(layers: MapLayers, mask: np.ndarray) -> MapLayers:
     """The map with the cells of mask made hazards."""
     return MapLayers(layers.spec, np.where(mask, np.inf, layers.cost), layers.hazard | mask, layers.unknown & ~mask)
+
+
+def with_unknown(layers: MapLayers, mask: np.ndarray) -> MapLayers:
+    """The map with the cells of mask made unknown again, hazards or not."""
+    return MapLayers(layers.spec, np.where(mask, np.nan, layers.cost), layers.hazard & ~mask, layers.unknown | mask)
