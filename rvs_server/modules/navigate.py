@@ -295,7 +295,7 @@ class Navigation:
         border = handout_border(layers, self.state.rover, self.settings.blind_radius_m.of(self.cfg.sensor))
         drivable = drivable_prefix(plan.waypoints, layers.spec, border, self.settings.border_margin_m)
         if look_m is not None:
-            drivable = short_of_holes(drivable, plan, unconfirmed, layers.spec, params.clearance_m, look_m)
+            drivable = short_of_unconfirmed(drivable, plan, unconfirmed, layers.spec, params.clearance_m, look_m)
         return drivable
 
     def drive_length(self, drivable: DrivablePrefix | None) -> float:
@@ -448,10 +448,10 @@ class Navigation:
                                  f"{odo[0]:.4f}", f"{odo[1]:.4f}", f"{math.degrees(odo[2]):.3f}"])
 
 
-def short_of_holes(drivable: DrivablePrefix, plan: PlanResult, holes: np.ndarray, spec: GridSpec, clearance_m: float,
-                   look_m: float) -> DrivablePrefix:
-    """The drivable part cut where it first comes within look_m of the holes the plan crosses."""
-    crossed = holes_on_path(plan.cells, holes, spec.cell, clearance_m)
+def short_of_unconfirmed(drivable: DrivablePrefix, plan: PlanResult, unconfirmed: np.ndarray, spec: GridSpec,
+                         clearance_m: float, look_m: float) -> DrivablePrefix:
+    """The drivable part cut where it first comes within look_m of the unconfirmed ground the plan crosses."""
+    crossed = holes_on_path(plan.cells, unconfirmed, spec.cell, clearance_m)
     if not crossed.any():
         return drivable
     return drivable_prefix(drivable.waypoints, spec, distance_transform_edt(~crossed) * spec.cell, look_m)
