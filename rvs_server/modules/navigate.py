@@ -306,7 +306,8 @@ class Navigation:
         """Every cycle's map over a blank global map spanning rover and goal, each cell as seen from
         the nearest place the rover mapped from (a close look corrects a far one); the rover's own
         footprint is safe ground. Also what no close look has confirmed: the holes no look filled
-        that navigation.toml makes hazards, and hazards seen only from beyond confirm_range_m. And
+        that navigation.toml makes hazards, and (navigation.toml far_hazards) hazards seen only from
+        beyond confirm_range_m. And
         the newest map."""
         rover = self.state.rover
         maps = [planning_layers(self.product.path / f"cycle-{c['cycle']:02d}", self.settings, rover)
@@ -321,9 +322,11 @@ class Navigation:
         cost = np.where(under, np.where(np.isfinite(fused.cost), fused.cost, 0.0), fused.cost)
         fused = MapLayers(fused.spec, np.where(under & fused.hazard, 0.0, cost), fused.hazard & ~under,
                           fused.unknown & ~under)
-        far = nearest.hazard & fused.hazard & (nearest.seen_from > self.settings.confirm_range_m)
-        if box is not None:
-            far &= ~outside_box(fused.spec, box)     # the operating area's edge is no sensor's guess
+        far = np.zeros(fused.spec.shape, bool)
+        if self.settings.far_hazards.of(self.cfg.sensor) == "unconfirmed":
+            far = nearest.hazard & fused.hazard & (nearest.seen_from > self.settings.confirm_range_m)
+            if box is not None:
+                far &= ~outside_box(fused.spec, box)     # the operating area's edge is no sensor's guess
         start = RoverPose(*self.state.cycles[0]["pose_corrected"])
         return fused, hole_mask(fused, start, self.cfg.sensor, self.settings) | far, maps[-1]
 

@@ -34,6 +34,7 @@ from .grid_canvas import Canvas
 
 T = TypeVar("T")
 Metres = Annotated[float, Field(ge=0)]
+FarHazardPolicy = Literal["hazard", "unconfirmed"]
 HolePolicy = Literal["hazard", "unknown"]
 
 
@@ -126,6 +127,9 @@ class NavigationSettings(Settings):
         "by known ground (nothing came back from a place the sensor looked at): hazard, or unknown like the "
         "unexplored outside")
     min_hole_m2: float = Field(0.01, ge=0, description="smaller holes stay unknown")
+    far_hazards: PerSensor[FarHazardPolicy] = Field(
+        PerSensor[FarHazardPolicy](tof="hazard", stereo="unconfirmed"), description="per sensor, hazards seen only "
+        "from beyond confirm_range_m: hazard like any other, or unconfirmed (see look_again_detour)")
     sticky_range_m: float = Field(2.5, ge=0, description="a hazard any cycle saw from this close stays, "
                                   "whatever a nearer look says")
     confirm_range_m: float = Field(3.0, gt=0, description="a hazard seen only from farther than this is "
