@@ -611,7 +611,7 @@ def test_holes_on_path_are_the_holes_a_path_passes_within_the_clearance_of():
 
 
 def test_unconfirmed_ground_is_planned_through_when_it_closes_the_way_or_makes_a_long_detour():
-    from rvs_server.toolbox.planning import plan_through_unconfirmed
+    from rvs_server.toolbox.planning import plan_through_unconfirmed, with_unknown
     spec = GridSpec(0.0, 0.0, 0.1, 60, 100)             # 10 m east-west, 6 m north-south
     params = PlanningParams(rover_radius_m=0.2, hazard_margin_m=0.0, proximity_cost=0.0)
     wall = np.zeros(spec.shape, bool)
@@ -621,11 +621,11 @@ def test_unconfirmed_ground_is_planned_through_when_it_closes_the_way_or_makes_a
     closed = plan_path(seen, start, goal, params)
     assert closed.found and closed.length_m > 11.5       # round the wall's north end
     # The wall seen only from afar: the way through (8 m) saves a long detour.
-    through = plan_through_unconfirmed(closed, seen, wall, start, goal, params, detour=0.25)
+    through = plan_through_unconfirmed(closed, with_unknown(seen, wall), start, goal, params, detour=0.25)
     assert through is not None and through.length_m == pytest.approx(8.0, abs=0.05)
     # A detour within the allowance stands; so does a plan when nothing is unconfirmed.
-    assert plan_through_unconfirmed(closed, seen, wall, start, goal, params, detour=1.0) is None
-    assert plan_through_unconfirmed(closed, seen, np.zeros(spec.shape, bool), start, goal, params, 0.25) is None
+    assert plan_through_unconfirmed(closed, with_unknown(seen, wall), start, goal, params, detour=1.0) is None
+    assert plan_through_unconfirmed(closed, seen, start, goal, params, 0.25) is None
     # Walled in on every side, the unconfirmed part is the only way.
     wall[:, 50] = True
     boxed = MapLayers(spec, np.zeros(spec.shape), wall, np.zeros(spec.shape, bool))
@@ -633,10 +633,10 @@ def test_unconfirmed_ground_is_planned_through_when_it_closes_the_way_or_makes_a
     assert closed.reason == "unreachable"
     part = np.zeros(spec.shape, bool)
     part[20:30, 50] = True                               # only one stretch of the wall is a far guess
-    through = plan_through_unconfirmed(closed, boxed, part, start, goal, params, detour=0.25)
+    through = plan_through_unconfirmed(closed, with_unknown(boxed, part), start, goal, params, detour=0.25)
     assert through is not None
     assert np.isin(through.cells[:, 0][through.cells[:, 1] == 50], np.arange(20, 30)).all()
     # Other refusals (a goal on a hazard) are not for looking again.
     on_rock = plan_path(boxed, start, (5.05, 1.0), params)
     assert on_rock.reason == "goal_blocked"
-    assert plan_through_unconfirmed(on_rock, boxed, part, start, (5.05, 1.0), params, 0.25) is None
+    assert plan_through_unconfirmed(on_rock, with_unknown(boxed, part), start, (5.05, 1.0), params, 0.25) is None

@@ -233,9 +233,10 @@ class Navigation:
                 # Seen from afar (a few noisy pixels): go and look from close by before refusing.
                 plan = plan_path(unseen_near(fused, self.goal, self.settings.confirm_range_m / 2), start, aim, params)
         closed = plan
-        plan, look_m = self.look_again(plan, seen, unconfirmed, start, aim, params)
+        open_map = with_unknown(seen, unconfirmed)
+        plan, look_m = self.look_again(plan, open_map, unconfirmed, start, aim, params)
         if look_m is not None:
-            fused = with_unknown(seen, unconfirmed)
+            fused = open_map
         elif state.route and math.dist(state.route_aim, aim) < 1e-6:
             plan = keep_route(plan, np.array(state.route), start, fused.spec, params, self.settings.route_hysteresis)
         if plan.found:
@@ -265,18 +266,18 @@ class Navigation:
         state.to_drive = route[1:].tolist()
         state.phase = "drive"
 
-    def look_again(self, closed: PlanResult, seen: MapLayers, unconfirmed: np.ndarray, start: tuple[float, float],
-                   aim: tuple[float, float], params: PlanningParams) -> tuple[PlanResult, float | None]:
+    def look_again(self, closed: PlanResult, open_map: MapLayers, unconfirmed: np.ndarray,
+                   start: tuple[float, float], aim: tuple[float, float],
+                   params: PlanningParams) -> tuple[PlanResult, float | None]:
         """When ground no close look has confirmed (holes; hazards seen only from beyond confirm_range_m)
         closes every way or makes a long detour: the plan through it, and how far from it the rover stops
         to look again, outside its blind ring. Far hazards are often range noise and holes often
         shadows; a close look clears them or confirms a rock. Otherwise the plan as it was, and None."""
-        through = plan_through_unconfirmed(closed, seen, unconfirmed, start, aim, params,
-                                           self.settings.look_again_detour)
+        through = (plan_through_unconfirmed(closed, open_map, start, aim, params, self.settings.look_again_detour)
+                   if unconfirmed.any() else None)
         if through is None:
             return closed, None
         look_m = self.settings.blind_radius_m.of(self.cfg.sensor) + self.settings.border_margin_m
-        open_map = with_unknown(seen, unconfirmed)
         if closed.found and self.drive_length(self.handout(through, open_map, unconfirmed, look_m, params)) \
                 < self.settings.min_progress_m:
             return closed, None       # already as close as a look needs to be, and it did not clear the way
@@ -307,8 +308,7 @@ class Navigation:
         the nearest place the rover mapped from (a close look corrects a far one); the rover's own
         footprint is safe ground. Also what no close look has confirmed: the holes no look filled
         that navigation.toml makes hazards, and (navigation.toml far_hazards) hazards seen only from
-        beyond confirm_range_m. And
-        the newest map."""
+        beyond confirm_range_m. And the newest map."""
         rover = self.state.rover
         maps = [planning_layers(self.product.path / f"cycle-{c['cycle']:02d}", self.settings, rover)
                 for c in self.state.cycles]

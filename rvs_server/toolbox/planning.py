@@ -170,16 +170,15 @@ def keep_route(plan: PlanResult, previous_xy: np.ndarray | None, start_xy: tuple
                       kept=True)
 
 
-def plan_through_unconfirmed(closed: PlanResult, seen: MapLayers, unconfirmed: np.ndarray,
-                             start_xy: tuple[float, float], goal_xy: tuple[float, float], params: PlanningParams,
-                             detour: float) -> PlanResult | None:
-    """The plan with the unconfirmed cells (guesses a closer look may clear: holes, hazards seen only
-    from afar) as unknown ground, when they close every way (`closed` is unreachable) or the way round
-    them is more than `detour` (a fraction) longer than the way through. Otherwise None: `closed`,
-    planned with them as hazards, stands."""
-    if not unconfirmed.any() or not (closed.found or closed.reason == "unreachable"):
+def plan_through_unconfirmed(closed: PlanResult, open_map: MapLayers, start_xy: tuple[float, float],
+                             goal_xy: tuple[float, float], params: PlanningParams, detour: float) -> PlanResult | None:
+    """The plan on `open_map`, the map with its unconfirmed cells (guesses a closer look may clear:
+    holes, hazards seen only from afar) as unknown ground, when they close every way (`closed`, planned
+    with them as hazards, is unreachable) or the way round them is more than `detour` (a fraction)
+    longer than the way through. Otherwise None: `closed` stands."""
+    if not (closed.found or closed.reason == "unreachable"):
         return None
-    through = plan_path(with_unknown(seen, unconfirmed), start_xy, goal_xy, params)
+    through = plan_path(open_map, start_xy, goal_xy, params)
     if not through.found or (closed.found and closed.length_m <= (1.0 + detour) * through.length_m):
         return None
     return through
