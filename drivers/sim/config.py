@@ -111,7 +111,8 @@ class AlbedoConfig(_Model):
 
 
 class DriveError(BaseModel):
-    """Standard deviations of the simulated rover's motion errors (drivers/sim/motion.py)."""
+    """Standard deviations of a rover's open-loop motion errors: the simulated rover draws them
+    (world.toml, drivers/sim/motion.py), navigate's drive-error cut assumes them (navigation.toml)."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 

@@ -10,7 +10,8 @@ placed where odometry said. Here each cycle
      keeps the last cycle's route while it stays clear and near the new plan's cost (a rover that
      re-chose after every look would swing between near-equal ways round);
   4. hands out the part of the path inside the newest map and a margin from its border, at most
-     max_drive_m long: in the simulation the rover drives it (turn, then straight, with drive
+     max_drive_m long and short of where the drive error could take the rover's body onto a
+     hazard (toolbox planning_drive_error): in the simulation the rover drives it (turn, then straight, with drive
      error: drivers/sim/motion.py); with a real rover the waypoints go out as a `navigate` event
      and the job waits for the GNC's `pose X,Y,HEADING`.
 
@@ -42,6 +43,7 @@ from ..toolbox.grid import GridSpec
 from ..toolbox.planning import (DrivablePrefix, MapLayers, PlanningParams, PlanResult, blank_map_spanning,
                                 drivable_prefix, fuse_nearest, holes_on_path, keep_route, nearest_open_cell,
                                 outside_box, plan_path, plan_through_unconfirmed, with_hazards, with_unknown)
+from ..toolbox.planning_drive_error import cut_for_drive_error
 from ..toolbox.planning_paths import path_length
 from ..workflow import WorkflowError, resolve_params, run_workflow
 from .mapping import MappingSettings, NavigateArgs, check_workflow, write_maps
@@ -241,7 +243,7 @@ class Navigation:
             plan = keep_route(plan, np.array(state.route), start, fused.spec, params, self.settings.route_hysteresis)
         if plan.found:
             state.route, state.route_aim = plan.waypoints.tolist(), list(aim)
-        drivable = self.handout(plan, fused, unconfirmed, look_m, params)
+        drivable, error_m = self.handout(plan, fused, unconfirmed, look_m, params)
         part = ProductPart(self.product, f"cycle-{cycle:02d}")
         ortho_path = self.product.path / f"cycle-{cycle:02d}" / "ortho.tif"
         ortho = read_geotiff(ortho_path)[0] if ortho_path.exists() else np.full(newest.spec.shape, np.nan)
@@ -253,6 +255,11 @@ class Navigation:
             self.fail(plan.reason, plan.message, fused=fused)
         route = clip_length(drivable.waypoints, self.settings.max_drive_m)
         record["drive"] = route.tolist()
+        if error_m > 0:
+            record["drive_error_cut_m"] = error_m
+            self.progress(f"cycle {cycle}: driving {path_length(route):.2f} m and mapping again: farther, the drive "
+                          f"error ({100 * error_m:.0f} cm at {self.settings.drive_error_sigmas:g} sigma) would take "
+                          "more than the room the path keeps from the hazards")
         if look_m is not None and path_length(route) < self.settings.min_progress_m:
             self.fail(closed.reason, f"{closed.message}; the ways that are left cross ground no close look has "
                       f"confirmed, looked at from {look_m:.1f} m already", fused=closed_map)
@@ -278,7 +285,7 @@ class Navigation:
         if through is None:
             return closed, None
         look_m = self.settings.blind_radius_m.of(self.cfg.sensor) + self.settings.border_margin_m
-        if closed.found and self.drive_length(self.handout(through, open_map, unconfirmed, look_m, params)) \
+        if closed.found and self.drive_length(self.handout(through, open_map, unconfirmed, look_m, params)[0]) \
                 < self.settings.min_progress_m:
             return closed, None       # already as close as a look needs to be, and it did not clear the way
         why = ("every way crosses" if not closed.found else
@@ -288,16 +295,25 @@ class Navigation:
         return through, look_m
 
     def handout(self, plan: PlanResult, layers: MapLayers, unconfirmed: np.ndarray, look_m: float | None,
-                params: PlanningParams) -> DrivablePrefix | None:
+                params: PlanningParams) -> tuple[DrivablePrefix | None, float]:
         """The part of the plan to drive: inside what the cycles have mapped, a margin from its border,
-        and, when it goes to look again, short of the unconfirmed ground it crosses."""
+        when it goes to look again short of the unconfirmed ground it crosses, and short of where the
+        drive error could take the body onto a hazard; and that error where it cut (0: no cut)."""
         if not plan.found:
-            return None
+            return None, 0.0
         border = handout_border(layers, self.state.rover, self.settings.blind_radius_m.of(self.cfg.sensor))
         drivable = drivable_prefix(plan.waypoints, layers.spec, border, self.settings.border_margin_m)
         if look_m is not None:
             drivable = short_of_unconfirmed(drivable, plan, unconfirmed, layers.spec, params.clearance_m, look_m)
-        return drivable
+        return self.short_of_drive_error(drivable, plan, layers.spec)
+
+    def short_of_drive_error(self, drivable: DrivablePrefix, plan: PlanResult,
+                             spec: GridSpec) -> tuple[DrivablePrefix, float]:
+        settings = self.settings
+        cut, error_m = cut_for_drive_error(clip_length(drivable.waypoints, settings.max_drive_m),
+                                           self.state.rover.heading, plan.hazards.distance_m, spec,
+                                           settings.body_radius_m, settings.drive_error, settings.drive_error_sigmas)
+        return (drivable, 0.0) if cut.complete else (cut, error_m)
 
     def drive_length(self, drivable: DrivablePrefix | None) -> float:
         return 0.0 if drivable is None else path_length(clip_length(drivable.waypoints, self.settings.max_drive_m))

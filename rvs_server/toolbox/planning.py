@@ -8,6 +8,7 @@ straight segments that keep clear of hazards. The steps live in small modules:
     planning_search  the path metric, A* and its Dijkstra reference
     planning_fusion  planning maps and the fusion of a global map with local maps
     planning_paths   world <-> cells, straight segments, the drivable part inside the local map
+    planning_drive_error  how far the rover may drive before its drive error could reach a hazard
 
 Fusing the maps comes before `plan_path` and cutting the path at the local map's border after it;
 the navigate loop calls them.

@@ -1,0 +1,98 @@
+"""The drive-error model behind navigate's cut: its spread against the simulated rover's own errors,
+and the cut against a wall beside the path."""
+import math
+
+import numpy as np
+import pytest
+
+from drivers.sim.config import DriveError, WorldConfig
+from drivers.sim.motion import dead_reckon, execute, turn_and_distance
+from drivers.sim.rover import Rover
+from drivers.sim.world import World
+from rvs_server.toolbox.grid import GridSpec
+from rvs_server.toolbox.planning_drive_error import cut_for_drive_error, drive_error_profile
+
+MODEL = DriveError()
+
+
+def test_a_straight_leg_spreads_as_the_closed_form():
+    profile = drive_error_profile(np.array([[0.0, 0.0], [2.0, 0.0]]), 0.0, MODEL, sample_m=0.1)
+    length = profile.along_m[-1]
+    turn = math.radians(MODEL.turn_noise_deg)          # no turn: only the absolute turn noise
+    drift = math.radians(MODEL.heading_drift_deg_per_m) * length
+    sideways = math.hypot(turn * length, MODEL.lateral_slip_per_m * length, drift * length / 2)
+    along = MODEL.distance_scale * length
+    assert profile.sigma_m[-1] == pytest.approx(max(sideways, along), rel=1e-9)
+    assert np.all(np.diff(profile.sigma_m) > 0) and profile.sigma_m[0] == 0.0
+
+
+def test_the_spread_matches_the_simulated_rovers_errors():
+    """Monte Carlo with the simulator's own motion (drivers/sim/motion.py) on rock-free ground: the
+    model's standard deviation at the end of a turning path is within 10 % of the measured one."""
+    world = World.build(WorldConfig(seed=4, size_m=(10.0, 10.0), rocks={"cover": 0.0}, craters={"count": 0}))
+    rover = Rover(world)
+    path = np.array([[0.0, 0.0], [0.0, 2.0], [1.5, 3.5], [3.0, 3.5]])
+    rng = np.random.default_rng(1)
+    ends = []
+    for _ in range(400):
+        rover.place(0.0, 0.0, 0.0)
+        believed = (0.0, 0.0, 0.0)
+        for target in path[1:]:
+            turn, distance = turn_and_distance(believed, target)
+            execute(rover, turn, distance, MODEL, rng, step_height=1.0, sample_m=1.0)
+            believed = dead_reckon(believed, turn, distance)
+        ends.append(rover.pose[:2])
+    measured = math.sqrt(np.linalg.eigvalsh(np.cov(np.array(ends).T))[-1])
+    predicted = drive_error_profile(path, 0.0, MODEL).sigma_m[-1]
+    assert predicted == pytest.approx(measured, rel=0.10)
+    # The first turn (90 degrees) dominates: without it the spread is much smaller.
+    assert drive_error_profile(path, math.pi / 2, MODEL).sigma_m[-1] < 0.7 * predicted
+
+
+def wall_beside_the_path(gap_m: float) -> tuple[GridSpec, np.ndarray]:
+    """A 10 x 4 m map (5 cm cells, y = 0 on cell centres) with a hazard row at y = gap_m; the distance to it."""
+    spec = GridSpec(origin_x=-1.025, origin_y=-2.025, cell=0.05, rows=81, cols=200)
+    _, ys = spec.centres()
+    distance = np.abs(ys - gap_m)[:, None] * np.ones((1, spec.cols))
+    return spec, distance
+
+
+def test_the_drive_ends_where_the_error_would_reach_the_wall():
+    spec, distance = wall_beside_the_path(0.5)        # 0.5 - 0.372: 12.8 cm of room beside the body
+    path = np.array([[0.0, 0.0], [8.0, 0.0]])
+    profile = drive_error_profile(path, math.pi / 2, MODEL, sample_m=spec.cell)
+    sideways = profile.sigma_towards(np.tile([0.0, 1.0], (len(profile.along_m), 1)))   # towards the wall
+    expected = profile.along_m[np.argmax(2.0 * sideways > 0.5 - 0.372) - 1]
+    cut, error = cut_for_drive_error(path, math.pi / 2, distance, spec, 0.372, MODEL, 2.0)
+    assert not cut.complete
+    assert np.linalg.norm(cut.waypoints[-1] - path[0]) == pytest.approx(expected, abs=1e-9)
+    assert 1.0 < expected < 3.0 and error > 0.5 - 0.372
+    # Facing along the path, the same wall leaves it longer; at 1 sigma longer still; 0 sigmas: no cut.
+    facing, _ = cut_for_drive_error(path, 0.0, distance, spec, 0.372, MODEL, 2.0)
+    assert np.linalg.norm(facing.waypoints[-1] - path[0]) > expected + 0.3
+    one, _ = cut_for_drive_error(path, math.pi / 2, distance, spec, 0.372, MODEL, 1.0)
+    assert np.linalg.norm(one.waypoints[-1] - path[0]) > expected + 0.3
+    off, error = cut_for_drive_error(path, math.pi / 2, distance, spec, 0.372, MODEL, 0.0)
+    assert off.complete and error == 0.0
+
+
+def test_open_ground_is_not_cut_and_a_cut_keeps_the_waypoints_before_it():
+    spec, distance = wall_beside_the_path(3.0)
+    path = np.array([[0.0, 0.0], [2.0, 0.0], [2.0, 0.8], [4.0, 0.8]])
+    whole, error = cut_for_drive_error(path, 0.0, distance, spec, 0.372, MODEL, 2.0)
+    assert whole.complete and error == 0.0 and np.array_equal(whole.waypoints, path)
+    spec, distance = wall_beside_the_path(1.3)        # the last leg runs 0.5 m from the wall
+    cut, _ = cut_for_drive_error(path, 0.0, distance, spec, 0.372, MODEL, 2.0)
+    assert not cut.complete
+    assert np.array_equal(cut.waypoints[:3], path[:3]) and len(cut.waypoints) == 4
+    assert cut.waypoints[-1][1] == pytest.approx(0.8) and 2.0 <= cut.waypoints[-1][0] < 4.0
+
+
+def test_a_rover_pushed_close_to_a_hazard_may_drive_away_from_it():
+    spec, distance = wall_beside_the_path(0.3)        # the rover starts 0.3 m from the wall: inside its body radius
+    away = np.array([[0.0, 0.0], [0.0, -1.2], [3.0, -1.2]])
+    cut, _ = cut_for_drive_error(away, 0.0, distance, spec, 0.372, MODEL, 2.0)
+    assert cut.complete
+    towards = np.array([[0.0, 0.0], [0.0, 0.2], [3.0, 0.2]])   # closer still: it stays where it is
+    cut, _ = cut_for_drive_error(towards, 0.0, distance, spec, 0.372, MODEL, 2.0)
+    assert not cut.complete and np.array_equal(cut.waypoints, towards[:1])
