@@ -154,3 +154,30 @@ def test_bad_options_name_the_field(server, options, field):
     with server.connect() as c:
         reply = c.command(f"navigate {options}")
     assert reply.split()[1:3] == ["ERR", "400"] and (field in reply or field.replace("_", "-") in reply), reply
+
+
+def first_drive(server, goal) -> tuple[float, dict, list[str], dict]:
+    """navigate for one cycle: the length driven, the cycle's record, PROGRESS, and the truth."""
+    with server.connect() as c:
+        c.send(f"@nav navigate --to {goal[0]},{goal[1]} --max-steps 1")
+        reply, progress = c.reply("nav", timeout=600)
+    product = product_of(server, reply)
+    cycle = json.loads((product / "traverse.json").read_text())["cycles"][0]
+    driven = float(np.linalg.norm(np.diff(np.array(cycle["drive"]), axis=0), axis=1).sum())
+    return driven, cycle, progress, json.loads((product / "truth" / "traverse.json").read_text())
+
+
+def test_a_sloppy_rover_drives_less_before_it_maps_again(server_factory, world):
+    """A rover whose turns are off by 10 degrees (as its GNC states in navigation.toml) is sent only as
+    far as that error keeps its body off the hazards, and told why; without the cut it is sent 3 m."""
+    goal = open_goal(world, (4.0, 4.6))
+    uncut, cycle, progress, _ = first_drive(server_factory(configs={"navigation.toml": "drive_error_sigmas = 0\n"}),
+                                            goal)
+    assert uncut == pytest.approx(3.0) and "drive_error_cut_m" not in cycle
+    assert not any("mapping again" in line for line in progress)
+    sloppy = server_factory(configs={"navigation.toml": "drive_error = { turn_noise_deg = 10.0 }\n"})
+    driven, cycle, progress, truth = first_drive(sloppy, goal)
+    assert 0.15 <= driven < uncut - 0.5 and cycle["drive_error_cut_m"] > 0.1, cycle
+    assert any(f"cycle 1: driving {driven:.2f} m and mapping again: farther, the drive error" in line
+               for line in progress), progress
+    assert truth["contacts"] == 0
