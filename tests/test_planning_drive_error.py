@@ -96,3 +96,14 @@ def test_a_rover_pushed_close_to_a_hazard_may_drive_away_from_it():
     towards = np.array([[0.0, 0.0], [0.0, 0.2], [3.0, 0.2]])   # closer still: it stays where it is
     cut, _ = cut_for_drive_error(towards, 0.0, distance, spec, 0.372, MODEL, 2.0)
     assert not cut.complete and np.array_equal(cut.waypoints, towards[:1])
+
+
+def test_a_drive_is_never_cut_shorter_than_asked():
+    """A rover stopped a hair from the clearance's edge beside a wall is cut within centimetres, however
+    small the error: unless it may go min_drive_m, it would look again and be cut again, for ever."""
+    spec, distance = wall_beside_the_path(0.375)      # 3 mm of room beside the body
+    path = np.array([[0.0, 0.0], [3.0, 0.0]])
+    cut, _ = cut_for_drive_error(path, math.pi, distance, spec, 0.372, MODEL, 2.0)
+    assert np.linalg.norm(cut.waypoints[-1] - path[0]) < 0.1
+    cut, error = cut_for_drive_error(path, math.pi, distance, spec, 0.372, MODEL, 2.0, min_drive_m=0.2)
+    assert 0.2 <= np.linalg.norm(cut.waypoints[-1] - path[0]) < 0.3 and error > 0.003

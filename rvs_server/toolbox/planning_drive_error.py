@@ -104,7 +104,8 @@ def _drive_covariance(start: np.ndarray, heading: float, length: float, model: D
 
 
 def cut_for_drive_error(waypoints_xy: np.ndarray, heading_rad: float, hazard_distance_m: np.ndarray, spec: GridSpec,
-                        body_radius_m: float, model: DriveErrorModel, sigmas: float) -> tuple[DrivablePrefix, float]:
+                        body_radius_m: float, model: DriveErrorModel, sigmas: float,
+                        min_drive_m: float = 0.0) -> tuple[DrivablePrefix, float]:
     """The waypoints up to where `sigmas` standard deviations of the drive error towards the nearest
     hazard first exceed the room the path keeps beyond the rover's body (the distance to that hazard,
     `hazard_distance_m` over `spec`, minus `body_radius_m`), and that error there (sigmas x sigma,
@@ -112,8 +113,10 @@ def cut_for_drive_error(waypoints_xy: np.ndarray, heading_rad: float, hazard_dis
     not the error along the way.
 
     A rover that starts closer to a hazard than its body radius (pushed there by an earlier drive) may
-    drive on while it comes no closer, until it has room again; from there on the rule holds.
-    sigmas = 0 switches the cut off."""
+    drive on while it comes no closer, until it has room again; from there on the rule holds. Nor is a
+    drive cut shorter than min_drive_m: a rover that stopped a hair from the clearance's edge would
+    otherwise be cut to nothing, look again, and be cut to nothing again. Over that first stretch the
+    error is millimetres. sigmas = 0 switches the cut off."""
     waypoints = np.asarray(waypoints_xy, dtype=np.float64).reshape(-1, 2)
     if sigmas <= 0 or len(waypoints) < 2:
         return DrivablePrefix(waypoints, True), 0.0
@@ -126,7 +129,8 @@ def cut_for_drive_error(waypoints_xy: np.ndarray, heading_rad: float, hazard_dis
     error = sigmas * np.where(any_way, profile.sigma_m, profile.sigma_towards(towards))
     # Pushed inside the body radius, the rover may drive while it does not come closer, until it has room.
     leaving = np.logical_and.accumulate((room <= 0) & np.r_[True, np.diff(room) >= -1e-9])
-    over = ~leaving & (error > room)
+    cut_at = np.r_[0.0, profile.along_m[:-1]]      # a cut keeps the drive up to the sample before
+    over = ~leaving & (error > room) & (cut_at >= min_drive_m)
     if not over.any():
         return DrivablePrefix(waypoints, True), 0.0
     first = int(np.argmax(over))
