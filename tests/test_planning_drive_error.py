@@ -10,7 +10,7 @@ from drivers.sim.motion import dead_reckon, execute, turn_and_distance
 from drivers.sim.rover import Rover
 from drivers.sim.world import World
 from rvs_server.toolbox.grid import GridSpec
-from rvs_server.toolbox.planning_drive_error import cut_for_drive_error, drive_error_profile
+from rvs_server.toolbox.planning_drive_error import cut_for_drive_error, drive_error_profile, footprint_outline
 
 MODEL = DriveError()
 
@@ -41,10 +41,13 @@ def test_the_spread_matches_the_simulated_rovers_errors():
             turn, distance = turn_and_distance(believed, target)
             execute(rover, turn, distance, MODEL, rng, step_height=1.0, sample_m=1.0)
             believed = dead_reckon(believed, turn, distance)
-        ends.append(rover.pose[:2])
-    measured = math.sqrt(np.linalg.eigvalsh(np.cov(np.array(ends).T))[-1])
-    predicted = drive_error_profile(path, 0.0, MODEL).sigma_m[-1]
-    assert predicted == pytest.approx(measured, rel=0.10)
+        ends.append(rover.pose)
+    ends = np.array(ends)
+    measured = math.sqrt(np.linalg.eigvalsh(np.cov(ends[:, :2].T))[-1])
+    profile = drive_error_profile(path, 0.0, MODEL)
+    assert profile.sigma_m[-1] == pytest.approx(measured, rel=0.10)
+    assert math.sqrt(profile.covariance[-1, 2, 2]) == pytest.approx(np.std(ends[:, 2]), rel=0.10)
+    predicted = profile.sigma_m[-1]
     # The first turn (90 degrees) dominates: without it the spread is much smaller.
     assert drive_error_profile(path, math.pi / 2, MODEL).sigma_m[-1] < 0.7 * predicted
 
@@ -57,53 +60,86 @@ def wall_beside_the_path(gap_m: float) -> tuple[GridSpec, np.ndarray]:
     return spec, distance
 
 
-def test_the_drive_ends_where_the_error_would_reach_the_wall():
-    spec, distance = wall_beside_the_path(0.5)        # 0.5 - 0.372: 12.8 cm of room beside the body
+FOOTPRINT = (0.55, 0.50)
+
+
+def drive_length(cut) -> float:
+    return float(np.linalg.norm(np.diff(cut.waypoints, axis=0), axis=1).sum())
+
+
+def test_the_drive_ends_where_the_error_would_take_the_side_onto_the_wall():
+    """Beside a wall the room is the gap less half the rover's width; the error of the side's points
+    towards the wall is the centre's sideways error plus the heading error times each point's lever."""
+    spec, distance = wall_beside_the_path(0.5)
     path = np.array([[0.0, 0.0], [8.0, 0.0]])
     profile = drive_error_profile(path, math.pi / 2, MODEL, sample_m=spec.cell)
-    sideways = profile.sigma_towards(np.tile([0.0, 1.0], (len(profile.along_m), 1)))   # towards the wall
-    expected = profile.along_m[np.argmax(2.0 * sideways > 0.5 - 0.372) - 1]
-    cut, error = cut_for_drive_error(path, math.pi / 2, distance, spec, 0.372, MODEL, 2.0)
-    assert not cut.complete
-    assert np.linalg.norm(cut.waypoints[-1] - path[0]) == pytest.approx(expected, abs=1e-9)
-    assert 1.0 < expected < 3.0 and error > 0.5 - 0.372
+    levers = np.linspace(-0.275, 0.275, 12)                  # the left side, rear to front
+    towards_wall = np.stack([np.zeros_like(levers), np.ones_like(levers), levers], axis=1)
+    sigma = np.sqrt(np.einsum("mi,nij,mj->nm", towards_wall, profile.covariance, towards_wall)).max(axis=1)
+    expected = profile.along_m[np.argmax(2.0 * sigma > 0.5 - 0.25) - 1]
+    cut, error = cut_for_drive_error(path, math.pi / 2, distance, spec, FOOTPRINT, MODEL, 2.0)
+    assert not cut.complete and 1.0 < expected < 6.0
+    assert drive_length(cut) == pytest.approx(expected, abs=spec.cell + 1e-9)
+    assert error == pytest.approx(0.25, abs=0.02)
     # Facing along the path, the same wall leaves it longer; at 1 sigma longer still; 0 sigmas: no cut.
-    facing, _ = cut_for_drive_error(path, 0.0, distance, spec, 0.372, MODEL, 2.0)
-    assert np.linalg.norm(facing.waypoints[-1] - path[0]) > expected + 0.3
-    one, _ = cut_for_drive_error(path, math.pi / 2, distance, spec, 0.372, MODEL, 1.0)
-    assert np.linalg.norm(one.waypoints[-1] - path[0]) > expected + 0.3
-    off, error = cut_for_drive_error(path, math.pi / 2, distance, spec, 0.372, MODEL, 0.0)
+    facing, _ = cut_for_drive_error(path, 0.0, distance, spec, FOOTPRINT, MODEL, 2.0)
+    assert drive_length(facing) > expected + 0.3
+    one, _ = cut_for_drive_error(path, math.pi / 2, distance, spec, FOOTPRINT, MODEL, 1.0)
+    assert drive_length(one) > expected + 0.3
+    off, error = cut_for_drive_error(path, math.pi / 2, distance, spec, FOOTPRINT, MODEL, 0.0)
     assert off.complete and error == 0.0
+
+
+def test_the_footprint_faces_along_the_leg():
+    """0.4 m from a wall (the planner's clearance) the rover's side keeps 15 cm, where a disc round its
+    corners (0.37 m) would keep 3: it drives on for metres. A rover 10 cm wider keeps 10 cm and stops
+    sooner."""
+    spec, distance = wall_beside_the_path(0.4)
+    path = np.array([[0.0, 0.0], [8.0, 0.0]])
+    along, _ = cut_for_drive_error(path, 0.0, distance, spec, FOOTPRINT, MODEL, 2.0)
+    wider, _ = cut_for_drive_error(path, 0.0, distance, spec, (0.55, 0.60), MODEL, 2.0)
+    assert drive_length(along) > 3.5
+    assert drive_length(wider) < drive_length(along) - 0.3
 
 
 def test_open_ground_is_not_cut_and_a_cut_keeps_the_waypoints_before_it():
     spec, distance = wall_beside_the_path(3.0)
     path = np.array([[0.0, 0.0], [2.0, 0.0], [2.0, 0.8], [4.0, 0.8]])
-    whole, error = cut_for_drive_error(path, 0.0, distance, spec, 0.372, MODEL, 2.0)
+    whole, error = cut_for_drive_error(path, 0.0, distance, spec, FOOTPRINT, MODEL, 2.0)
     assert whole.complete and error == 0.0 and np.array_equal(whole.waypoints, path)
-    spec, distance = wall_beside_the_path(1.3)        # the last leg runs 0.5 m from the wall
-    cut, _ = cut_for_drive_error(path, 0.0, distance, spec, 0.372, MODEL, 2.0)
+    spec, distance = wall_beside_the_path(1.2)        # the last leg runs 0.4 m from the wall
+    cut, _ = cut_for_drive_error(path, 0.0, distance, spec, FOOTPRINT, MODEL, 2.0)
     assert not cut.complete
     assert np.array_equal(cut.waypoints[:3], path[:3]) and len(cut.waypoints) == 4
     assert cut.waypoints[-1][1] == pytest.approx(0.8) and 2.0 <= cut.waypoints[-1][0] < 4.0
 
 
 def test_a_rover_pushed_close_to_a_hazard_may_drive_away_from_it():
-    spec, distance = wall_beside_the_path(0.3)        # the rover starts 0.3 m from the wall: inside its body radius
+    spec, distance = wall_beside_the_path(0.3)        # within its corners' reach of the wall
     away = np.array([[0.0, 0.0], [0.0, -1.2], [3.0, -1.2]])
-    cut, _ = cut_for_drive_error(away, 0.0, distance, spec, 0.372, MODEL, 2.0)
+    cut, _ = cut_for_drive_error(away, 0.0, distance, spec, FOOTPRINT, MODEL, 2.0)
     assert cut.complete
-    towards = np.array([[0.0, 0.0], [0.0, 0.2], [3.0, 0.2]])   # closer still: it stays where it is
-    cut, _ = cut_for_drive_error(towards, 0.0, distance, spec, 0.372, MODEL, 2.0)
-    assert not cut.complete and np.array_equal(cut.waypoints, towards[:1])
+    towards = np.array([[0.0, 0.0], [0.0, 0.2], [3.0, 0.2]])   # closer still: it stops as its front meets the wall
+    cut, _ = cut_for_drive_error(towards, 0.0, distance, spec, FOOTPRINT, MODEL, 2.0)
+    assert not cut.complete and drive_length(cut) <= spec.cell + 1e-9
 
 
 def test_a_drive_is_never_cut_shorter_than_asked():
-    """A rover stopped a hair from the clearance's edge beside a wall is cut within centimetres, however
-    small the error: unless it may go min_drive_m, it would look again and be cut again, for ever."""
-    spec, distance = wall_beside_the_path(0.375)      # 3 mm of room beside the body
+    """However large the error, a drive keeps min_drive_m: unless it may go that far, a rover cut to
+    nothing would look again from the same place and be cut again, for ever."""
+    sloppy = DriveError(turn_noise_deg=60.0)
+    spec, distance = wall_beside_the_path(0.4)
     path = np.array([[0.0, 0.0], [3.0, 0.0]])
-    cut, _ = cut_for_drive_error(path, math.pi, distance, spec, 0.372, MODEL, 2.0)
-    assert np.linalg.norm(cut.waypoints[-1] - path[0]) < 0.1
-    cut, error = cut_for_drive_error(path, math.pi, distance, spec, 0.372, MODEL, 2.0, min_drive_m=0.2)
-    assert 0.2 <= np.linalg.norm(cut.waypoints[-1] - path[0]) < 0.3 and error > 0.003
+    cut, _ = cut_for_drive_error(path, 0.0, distance, spec, FOOTPRINT, sloppy, 2.0)
+    assert drive_length(cut) < 0.1
+    cut, error = cut_for_drive_error(path, 0.0, distance, spec, FOOTPRINT, sloppy, 2.0, min_drive_m=0.2)
+    assert 0.2 <= drive_length(cut) < 0.3 and error > 0.15
+
+
+def test_the_outline_goes_round_the_footprint():
+    outline = footprint_outline(0.55, 0.50, 0.05)
+    assert np.abs(outline).max(axis=0) == pytest.approx([0.275, 0.25])
+    gaps = np.linalg.norm(np.diff(np.vstack([outline, outline[:1]]), axis=0), axis=1)
+    assert gaps.max() <= 0.05 + 1e-9 and len(outline) >= 2 * (0.55 + 0.50) / 0.05
+    with pytest.raises(ValueError, match="footprint"):
+        footprint_outline(0.0, 0.5, 0.05)

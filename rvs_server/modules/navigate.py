@@ -312,7 +312,7 @@ class Navigation:
         settings = self.settings
         cut, error_m = cut_for_drive_error(clip_length(drivable.waypoints, settings.max_drive_m),
                                            self.state.rover.heading, plan.hazards.distance_m, spec,
-                                           settings.body_radius_m, settings.drive_error, settings.drive_error_sigmas,
+                                           settings.footprint_m, settings.drive_error, settings.drive_error_sigmas,
                                            min_drive_m=settings.min_progress_m + spec.cell)   # never a stall
         return (drivable, 0.0) if cut.complete else (cut, error_m)
 

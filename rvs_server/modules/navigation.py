@@ -15,7 +15,7 @@ from typing import Annotated, Any, Generic, Literal, TypeVar
 
 import cv2
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, PlainValidator, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, PlainValidator, PositiveFloat, ValidationError
 from scipy.ndimage import binary_fill_holes
 
 from drivers.sim.config import DriveError
@@ -112,10 +112,10 @@ class NavigationSettings(Settings):
     max_drive_m: float = Field(3.0, gt=0, description="drive at most this far before mapping again")
     drive_error: DriveError = Field(DriveError(), description="standard deviations of the rover's open-loop "
                                     "motion errors between two maps, as its GNC states them")
-    drive_error_sigmas: float = Field(2.0, ge=0, description="a drive ends where this many standard deviations of "
-                                      "its error exceed the room the path keeps beyond the body radius; 0: off")
-    body_radius_m: float = Field(0.372, gt=0, description="the rover's circumscribed radius (half its footprint's "
-                                 "diagonal), for the drive-error cut")
+    drive_error_sigmas: float = Field(3.0, ge=0, description="a drive ends where this many standard deviations of "
+                                      "its error exceed the room between the footprint and the hazards; 0: off")
+    footprint_m: tuple[PositiveFloat, PositiveFloat] = Field((0.55, 0.50), description="the rover's footprint, "
+                                                             "length x width, metres, for the drive-error cut")
     route_hysteresis: float = Field(0.25, ge=0, description="navigate keeps its last route while it is clear and "
                                     "costs at most this fraction more than a new plan; 0: replan from scratch")
     min_progress_m: float = Field(0.15, gt=0, description="a safe part shorter than this is a stall")

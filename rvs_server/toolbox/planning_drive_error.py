@@ -4,9 +4,11 @@ Between two maps the rover drives open loop: it turns in place towards each wayp
 straight, from where it believes it stands. A turn is off by a share of its angle plus a little, the
 heading creeps while driving, the wheels slip sideways and the distance is off by a few per cent. The
 error grows along the drive, and a large first turn tilts every metre after it. Hazards are grown by
-the rover's radius plus a margin, so the margin is all the error may take: where the error's
-sigmas times its standard deviation exceed what the path keeps beyond the rover's radius, the drive
-ends, the rover maps and localises again, and the error starts from zero.
+the rover's radius plus a margin, so the margin is about all the error may take: where the error's
+sigmas times its standard deviation exceed the room between the rover's footprint and the nearest
+hazard, the drive ends, the rover maps and localises again, and the error starts from zero. The
+footprint is a rectangle that faces along each leg, so a rock beside the path leaves more room than
+one off a corner.
 
 The error is propagated to first order (an extended Kalman filter's prediction step, without the
 update) over the pose (x, y, heading), with the model of drivers/sim/motion.py:
@@ -42,31 +44,38 @@ class DriveErrorModel(Protocol):
 
 @dataclass(frozen=True)
 class DriveErrorProfile:
-    points: np.ndarray   # (N, 2) world (x, y) along the path, the start first
-    along_m: np.ndarray  # (N,) distance driven to each point
-    covariance: np.ndarray  # (N, 2, 2) covariance of the position error there, m^2
-    segment: np.ndarray  # (N,) index of the path segment each point lies on (0 for the start)
+    points: np.ndarray      # (N, 2) world (x, y) along the path, the start first
+    heading: np.ndarray     # (N,) the heading the rover drives with there (the start: the one it stands with)
+    along_m: np.ndarray     # (N,) distance driven to each point
+    covariance: np.ndarray  # (N, 3, 3) covariance of the pose error (x, y, heading) there, m^2 and rad^2
+    segment: np.ndarray     # (N,) index of the path segment each point lies on (0 for the start)
 
     @property
     def sigma_m(self) -> np.ndarray:
         """(N,) standard deviation of the position error in its worst direction."""
-        return np.sqrt(np.maximum(np.linalg.eigvalsh(self.covariance)[:, -1], 0.0))
+        return np.sqrt(np.maximum(np.linalg.eigvalsh(self.covariance[:, :2, :2])[:, -1], 0.0))
 
-    def sigma_towards(self, directions: np.ndarray) -> np.ndarray:
-        """(N,) standard deviation of the position error along unit directions (N, 2)."""
-        return np.sqrt(np.maximum(np.einsum("ni,nij,nj->n", directions, self.covariance, directions), 0.0))
+    def sigma_of(self, offsets: np.ndarray, directions: np.ndarray) -> np.ndarray:
+        """(N, M) standard deviation, along unit world directions (N, M, 2), of the error of body points at
+        body-frame offsets (M, 2) (x ahead, y left): the centre's error plus the heading's, times the lever."""
+        c, s = np.cos(self.heading)[:, None], np.sin(self.heading)[:, None]
+        # d(world offset)/d(heading): the offset rotated by heading + 90 degrees.
+        lever = np.stack([-s * offsets[:, 0] - c * offsets[:, 1], c * offsets[:, 0] - s * offsets[:, 1]], axis=-1)
+        # The point's error is J (dx, dy, dheading) with J = [I | lever]; project it on the direction.
+        along = np.concatenate([directions, np.einsum("nmi,nmi->nm", directions, lever)[..., None]], axis=-1)
+        return np.sqrt(np.maximum(np.einsum("nmi,nij,nmj->nm", along, self.covariance, along), 0.0))
 
 
 def drive_error_profile(waypoints_xy: np.ndarray, heading_rad: float, model: DriveErrorModel,
                         sample_m: float = 0.05) -> DriveErrorProfile:
-    """The position error's standard deviation along a path driven open loop from its first waypoint,
-    the rover facing heading_rad there, sampled every sample_m (and at every waypoint)."""
+    """The pose error's covariance along a path driven open loop from its first waypoint, the rover
+    facing heading_rad there, sampled every sample_m (and at every waypoint)."""
     if not sample_m > 0:
         raise ValueError(f"sample spacing must be > 0 m, got {sample_m!r}")
     waypoints = np.asarray(waypoints_xy, dtype=np.float64).reshape(-1, 2)
     covariance = np.zeros((3, 3))       # x, y, heading; the start is where the last map put the rover
     heading = float(heading_rad)
-    points, along, spread, segment = [waypoints[0]], [0.0], [np.zeros((2, 2))], [0]
+    points, headings, along, spread, segment = [waypoints[0]], [heading], [0.0], [covariance], [0]
     driven = 0.0
     for index, (a, b) in enumerate(zip(waypoints[:-1], waypoints[1:]), start=1):
         length = float(np.linalg.norm(b - a))
@@ -74,20 +83,22 @@ def drive_error_profile(waypoints_xy: np.ndarray, heading_rad: float, model: Dri
             continue
         bearing = math.atan2(b[1] - a[1], b[0] - a[0])
         turn = (bearing - heading + math.pi) % (2 * math.pi) - math.pi
+        covariance = covariance.copy()
         covariance[2, 2] += (model.turn_scale * turn) ** 2 + math.radians(model.turn_noise_deg) ** 2
         heading = bearing
-        start = covariance.copy()
+        start = covariance
         steps = max(1, math.ceil(length / sample_m))
         for k in range(1, steps + 1):
             t = length * k / steps
-            covariance_t = _drive_covariance(start, heading, t, model)
+            covariance = _drive_covariance(start, heading, t, model)
             points.append(a + (b - a) * (t / length))
+            headings.append(heading)
             along.append(driven + t)
-            spread.append(covariance_t[:2, :2])
+            spread.append(covariance)
             segment.append(index)
-        covariance = covariance_t
         driven += length
-    return DriveErrorProfile(np.array(points), np.array(along), np.array(spread), np.array(segment))
+    return DriveErrorProfile(np.array(points), np.array(headings), np.array(along), np.array(spread),
+                             np.array(segment))
 
 
 def _drive_covariance(start: np.ndarray, heading: float, length: float, model: DriveErrorModel) -> np.ndarray:
@@ -103,16 +114,37 @@ def _drive_covariance(start: np.ndarray, heading: float, length: float, model: D
     return jacobian @ start @ jacobian.T + noise_map @ noise @ noise_map.T
 
 
-def cut_for_drive_error(waypoints_xy: np.ndarray, heading_rad: float, hazard_distance_m: np.ndarray, spec: GridSpec,
-                        body_radius_m: float, model: DriveErrorModel, sigmas: float,
-                        min_drive_m: float = 0.0) -> tuple[DrivablePrefix, float]:
-    """The waypoints up to where `sigmas` standard deviations of the drive error towards the nearest
-    hazard first exceed the room the path keeps beyond the rover's body (the distance to that hazard,
-    `hazard_distance_m` over `spec`, minus `body_radius_m`), and that error there (sigmas x sigma,
-    metres; 0 if nothing was cut). Towards the hazard: beside a rock only the sideways error counts,
-    not the error along the way.
+def footprint_outline(length_m: float, width_m: float, spacing_m: float, filled: bool = False) -> np.ndarray:
+    """(M, 2) body-frame points (x ahead, y left) around a rectangular footprint, at most spacing_m apart;
+    filled: over all of it."""
+    if not (length_m > 0 and width_m > 0 and spacing_m > 0):
+        raise ValueError(f"footprint {length_m!r} x {width_m!r} m and spacing {spacing_m!r} m must be > 0")
+    a, b = length_m / 2, width_m / 2
+    if filled:
+        x = np.linspace(-a, a, max(2, math.ceil(length_m / spacing_m) + 1))
+        y = np.linspace(-b, b, max(2, math.ceil(width_m / spacing_m) + 1))
+        return np.stack(np.meshgrid(x, y), axis=-1).reshape(-1, 2)
+    corners = np.array([[a, b], [-a, b], [-a, -b], [a, -b], [a, b]])
+    sides = []
+    for p, q in zip(corners[:-1], corners[1:]):
+        n = max(1, math.ceil(np.linalg.norm(q - p) / spacing_m))
+        sides.append(p + (q - p) * (np.arange(n)[:, None] / n))
+    return np.vstack(sides)
 
-    A rover that starts closer to a hazard than its body radius (pushed there by an earlier drive) may
+
+def cut_for_drive_error(waypoints_xy: np.ndarray, heading_rad: float, hazard_distance_m: np.ndarray, spec: GridSpec,
+                        footprint_m: tuple[float, float], model: DriveErrorModel, sigmas: float,
+                        min_drive_m: float = 0.0) -> tuple[DrivablePrefix, float]:
+    """The waypoints up to where `sigmas` standard deviations of the drive error first exceed the room
+    between the rover's footprint (length, width) and the nearest hazard, and that error there (metres;
+    0 if nothing was cut). `hazard_distance_m` over `spec` is each cell's distance to the nearest hazard.
+
+    The rover drives each leg facing along it, so its footprint there is known: beside a rock the room is
+    what the side keeps, ahead of one what a corner keeps. Each point of the outline gets the room the
+    distance map gives there, and the error of that point towards the hazard: the centre's position error
+    and the heading error times the point's lever.
+
+    A rover that starts closer to a hazard than its body allows (pushed there by an earlier drive) may
     drive on while it comes no closer, until it has room again; from there on the rule holds. Nor is a
     drive cut shorter than min_drive_m: a rover that stopped a hair from the clearance's edge would
     otherwise be cut to nothing, look again, and be cut to nothing again. Over that first stretch the
@@ -121,24 +153,49 @@ def cut_for_drive_error(waypoints_xy: np.ndarray, heading_rad: float, hazard_dis
     if sigmas <= 0 or len(waypoints) < 2:
         return DrivablePrefix(waypoints, True), 0.0
     profile = drive_error_profile(waypoints, heading_rad, model, sample_m=spec.cell)
-    cells, inside = world_to_cells(spec, profile.points)
-    rows, cols = np.where(inside, cells[:, 0], 0), np.where(inside, cells[:, 1], 0)
-    room = np.where(inside, hazard_distance_m[rows, cols] - body_radius_m, -np.inf)  # off the map: no room
-    towards = _towards_nearest(hazard_distance_m, spec.cell)[rows, cols]
-    any_way = ~towards.any(axis=1)
-    error = sigmas * np.where(any_way, profile.sigma_m, profile.sigma_towards(towards))
-    # Pushed inside the body radius, the rover may drive while it does not come closer, until it has room.
+    outline = footprint_outline(*footprint_m, spacing_m=spec.cell)
+    distance, towards = _sample(hazard_distance_m, _towards_nearest(hazard_distance_m, spec.cell), spec,
+                                _place(outline, profile))
+    worst = np.sqrt(np.maximum(np.linalg.eigvalsh(profile.covariance[:, :2, :2])[:, -1], 0.0))[:, None] \
+        + np.abs(np.sqrt(profile.covariance[:, 2, 2])[:, None] * np.hypot(*outline.T)[None, :])
+    error = sigmas * np.where(towards.any(axis=-1), profile.sigma_of(outline, towards), worst)
+    margin = distance - error                      # (N, M): room left at each outline point after the error
+    # The outline's room; with a hazard inside the footprint (pushed onto it: only a rover leaving can
+    # be), less than none: the centre's distance less the circumscribed radius, which grows as it leaves.
+    inside = footprint_outline(*footprint_m, spacing_m=spec.cell, filled=True)
+    covered = _sample(hazard_distance_m, None, spec, _place(inside, profile))[0]
+    centre = _sample(hazard_distance_m, None, spec, profile.points)[0]
+    room = np.where((covered < spec.cell / 2).any(axis=1), np.minimum(centre - math.hypot(*footprint_m) / 2, 0.0),
+                    distance.min(axis=1))
+    # Pushed too close, the rover may drive while it does not come closer, until it has room.
     leaving = np.logical_and.accumulate((room <= 0) & np.r_[True, np.diff(room) >= -1e-9])
     cut_at = np.r_[0.0, profile.along_m[:-1]]      # a cut keeps the drive up to the sample before
-    over = ~leaving & (error > room) & (cut_at >= min_drive_m)
+    over = ~leaving & ((margin < 0).any(axis=1) | (room <= 0)) & (cut_at >= min_drive_m)
     if not over.any():
         return DrivablePrefix(waypoints, True), 0.0
     first = int(np.argmax(over))
     last = max(first - 1, 0)
     head = waypoints[:profile.segment[last]]
-    return DrivablePrefix(np.vstack([head, profile.points[last]]), False), float(error[first])
+    binding = int(np.argmin(margin[first]))
+    return DrivablePrefix(np.vstack([head, profile.points[last]]), False), float(error[first, binding])
 
 
+def _place(offsets: np.ndarray, profile: DriveErrorProfile) -> np.ndarray:
+    """(N, M, 2) world points of body-frame offsets (M, 2) at each pose of the profile."""
+    c, s = np.cos(profile.heading)[:, None], np.sin(profile.heading)[:, None]
+    return profile.points[:, None, :] + np.stack([c * offsets[:, 0] - s * offsets[:, 1],
+                                                  s * offsets[:, 0] + c * offsets[:, 1]], axis=-1)
+
+
+def _sample(distance_m: np.ndarray, towards: np.ndarray | None, spec: GridSpec,
+            points: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+    """The distance map (and directions) at world points (..., 2); off the map: distance -inf, no direction."""
+    cells, inside = world_to_cells(spec, points.reshape(-1, 2))
+    rows, cols = np.where(inside, cells[:, 0], 0), np.where(inside, cells[:, 1], 0)
+    distance = np.where(inside, distance_m[rows, cols], -np.inf).reshape(points.shape[:-1])
+    if towards is None:
+        return distance, None
+    return distance, np.where(inside[:, None], towards[rows, cols], 0.0).reshape(points.shape)
 def _towards_nearest(distance_m: np.ndarray, cell: float) -> np.ndarray:
     """(rows, cols, 2) unit world (x, y) directions towards the nearest hazard: down the distance map's
     gradient. Where it has none (on a ridge between two hazards, far from any), (0, 0) stands for every
