@@ -143,6 +143,12 @@ def test_with_a_real_rover_the_waypoints_go_to_the_gnc(server_factory, world):
             if "cycle 2: mapping" in line:
                 break
         assert "cycle 2: mapping" in line
+        # The first cycle's workflow checkpoints go once the second maps: its maps are in the product.
+        working = server.data_dir / "recovery" / re.search(r"job=(\S+)", event).group(1)
+        while ((working / "cycle-01").exists() or not (working / "cycle-02").exists()) \
+                and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert not (working / "cycle-01").exists() and (working / "cycle-02").exists()
         assert " OK " in gnc.command("break")
         assert "ERR 499" in c.reply("nav", timeout=300)[0]
 

@@ -24,7 +24,9 @@ from __future__ import annotations
 
 import csv
 import math
+import shutil
 from dataclasses import asdict, dataclass, field
+from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
@@ -187,7 +189,9 @@ class Navigation:
             raise BadRequest(f"navigate: {exc}") from None
         before = state.rover
         self.server.pose_estimate = before
-        folder = self.server.recovery.folder(self.ctx.job.id) / f"cycle-{cycle:02d}"
+        working = self.server.recovery.folder(self.ctx.job.id)
+        forget_finished_cycles(working, cycle)
+        folder = working / f"cycle-{cycle:02d}"
         results, provenance = run_workflow(workflow, operations, params, CycleJob(self.ctx, cycle, state.best_percent),
                                            folder)
         aligned = results["aligned"]
@@ -466,6 +470,15 @@ class Navigation:
             for i, (est, odo) in enumerate(zip(state.estimated_path, state.odometry_path)):
                 writer.writerow([i, f"{est[0]:.4f}", f"{est[1]:.4f}", f"{math.degrees(est[2]):.3f}",
                                  f"{odo[0]:.4f}", f"{odo[1]:.4f}", f"{math.degrees(odo[2]):.3f}"])
+
+
+def forget_finished_cycles(working: Path, cycle: int) -> None:
+    """Delete the workflow checkpoints of the cycles before this one. Their maps are in the product and
+    a resumed traverse never maps them again; kept, a stereo cycle's 400 MB (views, clouds) each filled
+    the disk within a 25-cycle traverse."""
+    for folder in working.glob("cycle-*"):
+        if int(folder.name.removeprefix("cycle-")) < cycle:
+            shutil.rmtree(folder, ignore_errors=True)
 
 
 def short_of_unconfirmed(drivable: DrivablePrefix, plan: PlanResult, unconfirmed: np.ndarray, spec: GridSpec,
