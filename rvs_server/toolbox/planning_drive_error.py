@@ -156,8 +156,8 @@ def cut_for_drive_error(waypoints_xy: np.ndarray, heading_rad: float, hazard_dis
     outline = footprint_outline(*footprint_m, spacing_m=spec.cell)
     distance, towards = _sample(hazard_distance_m, _towards_nearest(hazard_distance_m, spec.cell), spec,
                                 _place(outline, profile))
-    worst = np.sqrt(np.maximum(np.linalg.eigvalsh(profile.covariance[:, :2, :2])[:, -1], 0.0))[:, None] \
-        + np.abs(np.sqrt(profile.covariance[:, 2, 2])[:, None] * np.hypot(*outline.T)[None, :])
+    # Where the direction is unknown: the position's worst spread plus the heading's times the lever.
+    worst = profile.sigma_m[:, None] + np.sqrt(profile.covariance[:, 2, 2])[:, None] * np.hypot(*outline.T)
     error = sigmas * np.where(towards.any(axis=-1), profile.sigma_of(outline, towards), worst)
     margin = distance - error                      # (N, M): room left at each outline point after the error
     # The outline's room; with a hazard inside the footprint (pushed onto it: only a rover leaving can
