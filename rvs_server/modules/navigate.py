@@ -349,7 +349,9 @@ class Navigation:
             if box is not None:
                 far &= ~outside_box(fused.spec, box)     # the operating area's edge is no sensor's guess
         start = RoverPose(*self.state.cycles[0]["pose_corrected"])
-        return fused, hole_mask(fused, start, self.cfg.sensor, self.settings) | far, maps[-1]
+        # A hole is walled in by seen ground: unexplored ground along the operating area's edge is none.
+        in_area = fused if box is None else with_unknown(fused, outside_box(fused.spec, box))
+        return fused, hole_mask(in_area, start, self.cfg.sensor, self.settings) | far, maps[-1]
 
     def _map_cloud_path(self, cycle: int):
         if cycle < 1:
