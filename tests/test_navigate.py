@@ -177,13 +177,57 @@ def test_a_sloppy_rover_drives_less_before_it_maps_again(server_factory, world):
     """A rover whose turns are off by 10 degrees (as its GNC states in navigation.toml) is sent only as
     far as that error keeps its body off the hazards, and told why; without the cut it is sent 3 m."""
     goal = open_goal(world, (4.0, 4.6))
-    uncut, cycle, progress, _ = first_drive(server_factory(configs={"navigation.toml": "drive_error_sigmas = 0\n"}),
-                                            goal)
+    holes = "look_first = { tof = false, stereo = false }\n"    # that cut has a test of its own (below)
+    uncut, cycle, progress, _ = first_drive(server_factory(configs={"navigation.toml": "drive_error_sigmas = 0\n"
+                                                                    + holes}), goal)
     assert uncut == pytest.approx(3.0) and "drive_error_cut_m" not in cycle
     assert not any("mapping again" in line for line in progress)
-    sloppy = server_factory(configs={"navigation.toml": "drive_error = { turn_noise_deg = 10.0 }\n"})
+    sloppy = server_factory(configs={"navigation.toml": "drive_error = { turn_noise_deg = 10.0 }\n" + holes})
     driven, cycle, progress, truth = first_drive(sloppy, goal)
     assert 0.15 <= driven < uncut - 0.5 and cycle["drive_error_cut_m"] > 0.1, cycle
     assert any(f"cycle 1: driving {driven:.2f} m and mapping again: farther, the drive error" in line
                for line in progress), progress
     assert truth["contacts"] == 0
+
+
+def test_the_rover_stops_to_look_at_unknown_ground_before_it_drives_there(server_factory):
+    """Once the rover stands beside ground (in the 0.9 m ring round the mast the TOF camera cannot see)
+    no look can show what is there, and a rock's shadow can hide another rock: the first drive ends
+    1.4 m (the blind ring and the border margin) short of the unknown ground its way crosses, and
+    PROGRESS says why."""
+    from rvs_server.rasters import read_geotiff
+    from rvs_server.toolbox.hazard import UNKNOWN
+    goal = (-4.3, 0.0)
+    server = server_factory(configs={"navigation.toml": "drive_error_sigmas = 0\n",
+                                     "world.toml": "seed = 3\nsize_m = [12.0, 12.0]\n[rocks]\ncover = 0.16\n"})
+    driven, cycle, progress, truth = first_drive(server, goal)
+    assert 0.15 < driven < 2.9 and cycle["looks_first"], cycle
+    assert any(f"cycle 1: driving {driven:.2f} m and mapping again: the path crosses ground no look has seen" in line
+               for line in progress), progress
+    folder = server.data_dir / "products" / cycle_product(server) / "cycle-01"
+    code, spec = read_geotiff(folder / "hazard.tif")
+    xs, ys = spec.centres()
+    from_start = np.hypot(xs[None, :], ys[:, None])
+    unlooked = (code == UNKNOWN) & (from_start > 2.0)          # no look from within close_look_m
+    plan = json.loads((folder / "waypoints.json").read_text())
+    route = np.array([[w["x"], w["y"]] for w in plan["waypoints"]])
+    rows, cols = np.nonzero(unlooked)
+    cells = np.column_stack([xs[cols], ys[rows]])
+    crossed = cells[distance_to_polyline(cells, route) <= 0.4 + spec.cell]
+    assert len(crossed), "the planned way should cross unknown ground"
+    nearest = np.linalg.norm(crossed - np.array(cycle["drive"][-1]), axis=1).min()
+    assert 1.3 <= nearest <= 1.55, nearest
+    assert truth["contacts"] == 0
+
+
+def cycle_product(server) -> str:
+    return max((p for p in (server.data_dir / "products").iterdir() if p.name.startswith("navigate-")),
+               key=lambda p: p.stat().st_mtime).name
+
+
+def distance_to_polyline(points: np.ndarray, line: np.ndarray) -> np.ndarray:
+    best = np.full(len(points), np.inf)
+    for a, b in zip(line[:-1], line[1:]):
+        t = np.clip(((points - a) @ (b - a)) / max(float((b - a) @ (b - a)), 1e-12), 0.0, 1.0)
+        best = np.minimum(best, np.linalg.norm(points - (a + t[:, None] * (b - a)), axis=1))
+    return best

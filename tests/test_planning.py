@@ -574,6 +574,54 @@ def test_holes_are_hazards_for_stereo_and_stay_unknown_for_tof_by_default():
     assert holes_as_hazards(layers, start, "tof", both).hazard[20:24, 20:24].all()
 
 
+def test_unknown_ground_is_to_look_at_until_a_look_from_close_by_has_seen_into_it():
+    """look_first: unknown ground is to look at until a look from within close_look_m (beyond the
+    blind ring) has seen into it; what is left then is a shadow. Nor is ground beside the rover, in
+    its blind ring: no look from there can see it, and stopping for it would stall the rover."""
+    from rvs_server.modules.navigation import NavigationSettings, unlooked_ground
+    from rvs_server.toolbox.geometry import RoverPose
+    spec = GridSpec(0.0, 0.0, 0.05, 120, 120)             # 6 x 6 m
+    unknown = np.zeros(spec.shape, bool)
+    unknown[60:64, 60:64] = True                          # a 20 cm shadow round (3.1, 3.1)
+    unknown[:, 115:] = True                               # and unexplored ground from x = 5.75 m
+    layers = MapLayers(spec, np.where(unknown, np.nan, 0.0), np.zeros(spec.shape, bool), unknown)
+    settings = NavigationSettings()                       # TOF: blind ring 0.9 m, close look 2 m
+
+    def unlooked(looks, here):
+        return unlooked_ground(layers, looks, RoverPose(*here), "tof", settings)
+
+    far = unlooked([(0.5, 0.5)], (0.5, 0.5))               # looked at from 3.7 m only
+    assert far[60:64, 60:64].all() and far[:, 115:].all() and far.sum() == unknown.sum()
+    close = unlooked([(0.5, 0.5), (1.8, 3.1)], (1.8, 3.1))  # then from 1.3 m
+    assert not close[60:64, 60:64].any() and close[:, 115:].all()
+    beside = unlooked([(0.5, 0.5), (3.1, 2.6)], (3.1, 2.6))  # in the rover's blind ring
+    assert not beside[60:64, 60:64].any()
+    left = unlooked([(0.5, 0.5), (3.1, 2.6)], (0.5, 0.5))   # a look from beside it saw nothing of it
+    assert left[60:64, 60:64].all()
+    assert not unlooked_ground(layers, [(0.5, 0.5)], RoverPose(0.5, 0.5), "stereo", settings).any()
+    with pytest.raises(ValueError, match="close_look_m = 1.2 must exceed the 1.4 m"):
+        NavigationSettings(close_look_m=1.2)
+
+
+def test_the_drive_stops_short_of_the_first_unknown_ground_its_path_crosses():
+    from rvs_server.toolbox.planning import short_of_first_touch
+    spec = GridSpec(0.0, 0.0, 0.05, 40, 160)             # 8 x 2 m
+    unknown = np.zeros(spec.shape, bool)
+    unknown[18:22, 100:104] = True                        # a shadow on the line y = 1 at x = 5.0-5.2
+    unknown[18:22, 130:134] = True                        # and another at x = 6.5-6.7
+    layers = MapLayers(spec, np.where(unknown, np.nan, 0.0), np.zeros(spec.shape, bool), unknown)
+    plan = plan_path(layers, (0.5, 1.0), (7.5, 1.0), PlanningParams(weight=1.0))
+    assert plan.found
+    whole = drivable_prefix(plan.waypoints, spec, np.full(spec.shape, 10.0), 0.5)
+    short, cut = short_of_first_touch(whole, plan.cells, unknown, spec, 0.4, 1.4)
+    assert cut and not short.complete
+    # The path comes within 0.4 m of the first shadow's west edge (x = 5.0) first: it stops 1.4 m short of it.
+    assert short.waypoints[-1][0] == pytest.approx(5.0 - 1.4, abs=0.06)
+    beside = np.zeros(spec.shape, bool)
+    beside[0:3, 60:140] = True                            # 0.85 m off the line: more than the clearance
+    assert short_of_first_touch(whole, plan.cells, beside, spec, 0.4, 1.4) == (whole, False)
+
+
 def test_ground_outside_the_operating_area_is_a_hazard_the_rover_keeps_clear_of():
     from rvs_server.toolbox.planning import outside_box, with_hazards
     spec = GridSpec(0.0, 0.0, 0.1, 40, 60)               # 6 x 4 m

@@ -27,7 +27,7 @@ import math
 import shutil
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, NamedTuple
 
 import numpy as np
 from pydantic import Field
@@ -44,14 +44,16 @@ from ..toolbox.localisation import merge_clouds
 from ..toolbox.grid import GridSpec
 from ..toolbox.planning import (DrivablePrefix, MapLayers, PlanningParams, PlanResult, blank_map_spanning,
                                 drivable_prefix, fuse_nearest, holes_on_path, keep_route, nearest_open_cell,
-                                outside_box, plan_path, plan_through_unconfirmed, with_hazards, with_unknown)
+                                outside_box, plan_path, plan_through_unconfirmed, short_of_first_touch,
+                                with_hazards, with_unknown)
 from ..toolbox.planning_drive_error import cut_for_drive_error
 from ..toolbox.planning_paths import path_length
 from ..workflow import WorkflowError, resolve_params, run_workflow
 from .mapping import MappingSettings, NavigateArgs, check_workflow, write_maps
 from .navigate_pictures import write_traverse
-from .navigation import (NavigationSettings, check_reach, handout_border, hole_mask, module, operating_box,
-                         planning_layers, planning_params, under_rover, wait_for_pose, within_area, write_plan)
+from .navigation import (NavigationSettings, check_reach, handout_border, hole_mask, look_distance, module,
+                         operating_box, planning_layers, planning_params, under_rover, unlooked_ground, wait_for_pose,
+                         within_area, write_plan)
 
 SENSOR_DEVICE = {"tof": "tof", "stereo": "cameras"}
 MAP_CLOUD_VOXEL_M = 0.05
@@ -104,6 +106,19 @@ def _validate(server: Any, cfg: NavigateConfig) -> None:
 def navigate(ctx: JobContext, cfg: NavigateConfig) -> dict[str, Any]:
     """Map, localise, plan and drive in cycles until the rover is within tolerance of the goal."""
     return Navigation(ctx, cfg).run()
+
+
+class FusedMaps(NamedTuple):
+    seen: MapLayers           # every cycle's map fused
+    unconfirmed: np.ndarray   # hazards until a close look clears them: holes (stereo), hazards seen from afar
+    unlooked: np.ndarray      # unknown ground to look at before driving there (navigation.toml look_first)
+    newest: MapLayers
+
+
+class Handout(NamedTuple):
+    drivable: DrivablePrefix | None
+    error_m: float            # the drive error where it cut the drive; 0: it did not
+    to_look: bool             # cut short of unknown ground the path crosses, to look at it first
 
 
 class CycleJob:
@@ -223,7 +238,7 @@ class Navigation:
     def plan_cycle(self) -> None:
         state, cycle = self.state, self.state.cycle
         self.progress(f"cycle {cycle}: planning, {self.distance_to_goal():.2f} m to go")
-        seen, unconfirmed, newest = self.fused_map()
+        seen, unconfirmed, unlooked, newest = self.fused_map()
         fused = closed_map = with_hazards(seen, unconfirmed)
         start = (state.pose[0], state.pose[1])
         params = planning_params(self.settings, self.cfg.weight)
@@ -240,14 +255,14 @@ class Navigation:
                 plan = plan_path(unseen_near(fused, self.goal, self.settings.confirm_range_m / 2), start, aim, params)
         closed = plan
         open_map = with_unknown(seen, unconfirmed)
-        plan, look_m = self.look_again(plan, open_map, unconfirmed, start, aim, params)
+        plan, look_m = self.look_again(plan, open_map, unconfirmed, unlooked, start, aim, params)
         if look_m is not None:
             fused = open_map
         elif state.route and math.dist(state.route_aim, aim) < 1e-6:
             plan = keep_route(plan, np.array(state.route), start, fused.spec, params, self.settings.route_hysteresis)
         if plan.found:
             state.route, state.route_aim = plan.waypoints.tolist(), list(aim)
-        drivable, error_m = self.handout(plan, fused, unconfirmed, look_m, params)
+        drivable, error_m, to_look = self.handout(plan, fused, unconfirmed, unlooked, look_m, params)
         part = ProductPart(self.product, f"cycle-{cycle:02d}")
         ortho_path = self.product.path / f"cycle-{cycle:02d}" / "ortho.tif"
         ortho = read_geotiff(ortho_path)[0] if ortho_path.exists() else np.full(newest.spec.shape, np.nan)
@@ -264,6 +279,11 @@ class Navigation:
             self.progress(f"cycle {cycle}: driving {path_length(route):.2f} m and mapping again: farther, the drive "
                           f"error ({100 * error_m:.0f} cm at {self.settings.drive_error_sigmas:g} sigma) would take "
                           "more than the room the path keeps from the hazards")
+        elif to_look:
+            record["looks_first"] = True
+            self.progress(f"cycle {cycle}: driving {path_length(route):.2f} m and mapping again: the path crosses "
+                          f"ground no look has seen (a shadow, or beyond the map), to look at from {self.look_m:.1f} "
+                          "m first")
         if look_m is not None and path_length(route) < self.settings.min_progress_m:
             self.fail(closed.reason, f"{closed.message}; the ways that are left cross ground no close look has "
                       f"confirmed, looked at from {look_m:.1f} m already", fused=closed_map)
@@ -277,7 +297,7 @@ class Navigation:
         state.to_drive = route[1:].tolist()
         state.phase = "drive"
 
-    def look_again(self, closed: PlanResult, open_map: MapLayers, unconfirmed: np.ndarray,
+    def look_again(self, closed: PlanResult, open_map: MapLayers, unconfirmed: np.ndarray, unlooked: np.ndarray,
                    start: tuple[float, float], aim: tuple[float, float],
                    params: PlanningParams) -> tuple[PlanResult, float | None]:
         """When ground no close look has confirmed (holes; hazards seen only from beyond confirm_range_m)
@@ -288,9 +308,9 @@ class Navigation:
                    if unconfirmed.any() else None)
         if through is None:
             return closed, None
-        look_m = self.settings.blind_radius_m.of(self.cfg.sensor) + self.settings.border_margin_m
-        if closed.found and self.drive_length(self.handout(through, open_map, unconfirmed, look_m, params)[0]) \
-                < self.settings.min_progress_m:
+        look_m = self.look_m
+        if closed.found and self.drive_length(self.handout(through, open_map, unconfirmed, unlooked, look_m,
+                                                           params).drivable) < self.settings.min_progress_m:
             return closed, None       # already as close as a look needs to be, and it did not clear the way
         why = ("every way crosses" if not closed.found else
                f"the way round ({closed.length_m:.1f} m) is much longer than the way through")
@@ -298,18 +318,23 @@ class Navigation:
                       f"from {look_m:.1f} m")
         return through, look_m
 
-    def handout(self, plan: PlanResult, layers: MapLayers, unconfirmed: np.ndarray, look_m: float | None,
-                params: PlanningParams) -> tuple[DrivablePrefix | None, float]:
+    def handout(self, plan: PlanResult, layers: MapLayers, unconfirmed: np.ndarray, unlooked: np.ndarray,
+                look_m: float | None, params: PlanningParams) -> Handout:
         """The part of the plan to drive: inside what the cycles have mapped, a margin from its border,
-        when it goes to look again short of the unconfirmed ground it crosses, and short of where the
-        drive error could take the body onto a hazard; and that error where it cut (0: no cut)."""
+        when it goes to look again short of the unconfirmed ground it crosses, short of the first unknown
+        ground it crosses that no look has seen from close by, and short of where the drive error could
+        take the body onto a hazard."""
         if not plan.found:
-            return None, 0.0
+            return Handout(None, 0.0, False)
         border = handout_border(layers, self.state.rover, self.settings.blind_radius_m.of(self.cfg.sensor))
         drivable = drivable_prefix(plan.waypoints, layers.spec, border, self.settings.border_margin_m)
         if look_m is not None:
             drivable = short_of_unconfirmed(drivable, plan, unconfirmed, layers.spec, params.clearance_m, look_m)
-        return self.short_of_drive_error(drivable, plan, layers.spec)
+        looked, to_look = short_of_first_touch(drivable, plan.cells, unlooked, layers.spec, params.clearance_m,
+                                               self.look_m)
+        # A cut beyond the longest drive changes nothing this cycle.
+        to_look = to_look and self.drive_length(looked) < self.drive_length(drivable) - 1e-6
+        return Handout(*self.short_of_drive_error(looked, plan, layers.spec), to_look)
 
     def short_of_drive_error(self, drivable: DrivablePrefix, plan: PlanResult,
                              spec: GridSpec) -> tuple[DrivablePrefix, float]:
@@ -320,16 +345,20 @@ class Navigation:
                                            min_drive_m=settings.min_progress_m + spec.cell)   # never a stall
         return (drivable, 0.0) if cut.complete else (cut, error_m)
 
+    @property
+    def look_m(self) -> float:
+        return look_distance(self.settings, self.cfg.sensor)
+
     def drive_length(self, drivable: DrivablePrefix | None) -> float:
         return 0.0 if drivable is None else path_length(clip_length(drivable.waypoints, self.settings.max_drive_m))
 
     # ---------------------------------------------------------------------------------- the maps
-    def fused_map(self) -> tuple[MapLayers, np.ndarray, MapLayers]:
+    def fused_map(self) -> FusedMaps:
         """Every cycle's map over a blank global map spanning rover and goal, each cell as seen from
         the nearest place the rover mapped from (a close look corrects a far one); the rover's own
         footprint is safe ground. Also what no close look has confirmed: the holes no look filled
         that navigation.toml makes hazards, and (navigation.toml far_hazards) hazards seen only from
-        beyond confirm_range_m. And the newest map."""
+        beyond confirm_range_m; the unknown ground to look at before driving there; and the newest map."""
         rover = self.state.rover
         maps = [planning_layers(self.product.path / f"cycle-{c['cycle']:02d}", self.settings, rover)
                 for c in self.state.cycles]
@@ -349,9 +378,12 @@ class Navigation:
             if box is not None:
                 far &= ~outside_box(fused.spec, box)     # the operating area's edge is no sensor's guess
         start = RoverPose(*self.state.cycles[0]["pose_corrected"])
+        looks = [c["pose_corrected"][:2] for c in self.state.cycles]
         # A hole is walled in by seen ground: unexplored ground along the operating area's edge is none.
         in_area = fused if box is None else with_unknown(fused, outside_box(fused.spec, box))
-        return fused, hole_mask(in_area, start, self.cfg.sensor, self.settings) | far, maps[-1]
+        holes = hole_mask(in_area, start, self.cfg.sensor, self.settings)
+        unlooked = unlooked_ground(fused, looks, rover, self.cfg.sensor, self.settings)
+        return FusedMaps(fused, holes | far, unlooked, maps[-1])
 
     def _map_cloud_path(self, cycle: int):
         if cycle < 1:
@@ -457,8 +489,8 @@ class Navigation:
     def write_traverse(self, outcome: str, message: str, fused: MapLayers | None = None) -> None:
         state = self.state
         if fused is None and state.cycles:
-            seen, holes, _ = self.fused_map()
-            fused = with_hazards(seen, holes)
+            maps = self.fused_map()
+            fused = with_hazards(maps.seen, maps.unconfirmed)
         truth = None
         if self.simulated:
             testbed = self.ctx.devices.testbed

@@ -11,11 +11,11 @@ from __future__ import annotations
 import csv
 import math
 from pathlib import Path
-from typing import Annotated, Any, Generic, Literal, TypeVar
+from typing import Annotated, Any, Generic, Literal, Sequence, TypeVar
 
 import cv2
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, PlainValidator, PositiveFloat, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, PlainValidator, PositiveFloat, ValidationError, model_validator
 from scipy.ndimage import binary_fill_holes
 
 from drivers.sim.config import DriveError
@@ -133,6 +133,12 @@ class NavigationSettings(Settings):
         PerSensor[HolePolicy](tof="unknown", stereo="hazard"), description="per sensor, unknown cells walled in "
         "by known ground (nothing came back from a place the sensor looked at): hazard, or unknown like the "
         "unexplored outside")
+    look_first: PerSensor[bool] = Field(
+        PerSensor[bool](tof=True, stereo=False), description="per sensor, navigate stops a drive blind_radius_m + "
+        "border_margin_m short of the first unknown ground its path crosses that no cycle has looked at from "
+        "within close_look_m: once the rover stands beside it, in the sensor's blind ring, no look can see it")
+    close_look_m: float = Field(2.0, gt=0, description="look_first: unknown ground a cycle has looked at from this "
+                                "close (beyond the sensor's blind ring) is a shadow, needing no other look")
     min_hole_m2: float = Field(0.01, ge=0, description="smaller holes stay unknown")
     far_hazards: PerSensor[FarHazardPolicy] = Field(
         PerSensor[FarHazardPolicy](tof="hazard", stereo="unconfirmed"), description="per sensor, hazards seen only "
@@ -146,6 +152,16 @@ class NavigationSettings(Settings):
                                      "hazards seen only from afar) is this much longer than the way through it, "
                                      "or there is no way round, the rover drives towards it and looks again")
     pose_timeout_s: float = Field(900.0, gt=0, description="how long navigate waits for the GNC's pose")
+
+    @model_validator(mode="after")
+    def _close_look_reaches_past_the_stop(self) -> "NavigationSettings":
+        for sensor in ("tof", "stereo"):
+            stop = look_distance(self, sensor)
+            if self.look_first.of(sensor) and self.close_look_m <= stop:
+                raise ValueError(f"close_look_m = {self.close_look_m:g} must exceed the {stop:g} m from which the "
+                                 f"rover looks first ({sensor}: blind_radius_m + border_margin_m): else no look "
+                                 "ever settles the ground it stops for")
+        return self
 
 
 module = Module("navigation", settings=NavigationSettings, summary="path planning and the rover's pose")
@@ -228,6 +244,12 @@ def handout_border(layers: MapLayers, pose: RoverPose, blind_radius_m: float) ->
     return distance_to_border(binary_fill_holes(seen), layers.spec.cell)
 
 
+def look_distance(settings: NavigationSettings, sensor: str) -> float:
+    """How far from ground it should look at first the rover stops: outside the sensor's blind ring,
+    with the border margin a map needs round what it hands out."""
+    return settings.blind_radius_m.of(sensor) + settings.border_margin_m
+
+
 def hole_mask(layers: MapLayers, start: RoverPose, sensor: str, settings: NavigationSettings) -> np.ndarray:
     """The map's holes that navigation.toml holes makes hazards (none when it keeps them unknown),
     except within the sensor's blind ring round where the rover started mapping: no look could have
@@ -243,6 +265,22 @@ def holes_as_hazards(layers: MapLayers, start: RoverPose, sensor: str, settings:
     """The map with its holes made hazards where navigation.toml says so (see hole_mask)."""
     holes = hole_mask(layers, start, sensor, settings)
     return with_hazards(layers, holes) if holes.any() else layers
+
+
+def unlooked_ground(layers: MapLayers, looks: Sequence[tuple[float, float]], here: RoverPose, sensor: str,
+                    settings: NavigationSettings) -> np.ndarray:
+    """Unknown ground the rover should look at before it drives there (navigation.toml look_first): no
+    look (the places the rover mapped from) came within close_look_m of it, beyond the blind ring. What
+    stays unknown after such a look is a shadow; and from beside it (the blind ring round the rover)
+    no look can see it, so stopping for it would only stall the rover."""
+    if not settings.look_first.of(sensor):
+        return np.zeros(layers.spec.shape, bool)
+    blind = settings.blind_radius_m.of(sensor)
+    looked = under_rover(layers.spec, here, blind)
+    for x, y in looks:
+        looked |= under_rover(layers.spec, RoverPose(x, y), settings.close_look_m) & \
+            ~under_rover(layers.spec, RoverPose(x, y), blind)
+    return layers.unknown & ~looked
 
 
 def planning_params(settings: NavigationSettings, weight: float | None) -> PlanningParams:

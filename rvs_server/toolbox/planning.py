@@ -26,8 +26,8 @@ from .planning_fusion import (FusedLayers, MapLayers, blank_map, blank_map_spann
                               fuse_nearest, holes_on_path, inside_box, outside_box, resample_onto, with_hazards,
                               with_unknown)
 from .planning_paths import (DrivablePrefix, cells_to_world, distance_to_border, douglas_peucker,
-                             drivable_prefix, path_length, segment_cells, segment_is_clear, simplify_path,
-                             world_to_cells, world_to_grid)
+                             drivable_prefix, first_touch, path_length, segment_cells, segment_is_clear,
+                             short_of_first_touch, simplify_path, world_to_cells, world_to_grid)
 from .planning_search import SearchResult, astar, cost_per_metre, dijkstra_reference, path_cost
 
 __all__ = [
@@ -40,6 +40,7 @@ __all__ = [
     "enclosed_unknown", "holes_on_path", "inside_box", "outside_box", "with_hazards", "with_unknown", "FusedLayers",
     "cells_to_world", "world_to_cells", "path_length", "douglas_peucker", "segment_cells",
     "segment_is_clear", "simplify_path", "distance_to_border", "drivable_prefix", "DrivablePrefix",
+    "first_touch", "short_of_first_touch",
 ]
 
 

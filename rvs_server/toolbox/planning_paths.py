@@ -177,3 +177,31 @@ def _border_distance_at(border_distance: np.ndarray, cells: np.ndarray) -> np.nd
     distance = np.zeros(len(cells))
     distance[inside] = border_distance[cells[inside, 0], cells[inside, 1]]
     return distance
+
+
+def first_touch(cells: np.ndarray, mask: np.ndarray, cell: float, clearance_m: float) -> tuple[int, int] | None:
+    """The cell of mask that a path of grid cells (N, 2 rows and columns) first passes within
+    clearance_m of (the nearest one to the path there), or None if it never does."""
+    cells = np.asarray(cells, dtype=np.int64).reshape(-1, 2)
+    if not mask.any() or len(cells) == 0:
+        return None
+    distance, (rows, cols) = distance_transform_edt(~mask, return_indices=True)
+    near = distance[cells[:, 0], cells[:, 1]] <= clearance_m / cell + 1e-9
+    if not near.any():
+        return None
+    row, col = cells[int(np.argmax(near))]
+    return int(rows[row, col]), int(cols[row, col])
+
+
+def short_of_first_touch(drivable: DrivablePrefix, cells: np.ndarray, mask: np.ndarray, spec: GridSpec,
+                         clearance_m: float, stop_m: float) -> tuple[DrivablePrefix, bool]:
+    """The drivable part cut where it first comes within stop_m of the first cell of mask that the
+    path (its grid cells) passes within clearance_m of; and whether it was cut. Ground the path
+    only passes later, or never, does not shorten this drive."""
+    touch = first_touch(cells, mask, spec.cell, clearance_m)
+    if touch is None:
+        return drivable, False
+    x, y = cells_to_world(spec, np.array([touch]))[0]
+    xs, ys = spec.centres()
+    cut = drivable_prefix(drivable.waypoints, spec, np.hypot(xs[None, :] - x, ys[:, None] - y), stop_m)
+    return (drivable, False) if cut.complete else (cut, True)
