@@ -688,3 +688,17 @@ def test_unconfirmed_ground_is_planned_through_when_it_closes_the_way_or_makes_a
     on_rock = plan_path(boxed, start, (5.05, 1.0), params)
     assert on_rock.reason == "goal_blocked"
     assert plan_through_unconfirmed(on_rock, with_unknown(boxed, part), start, (5.05, 1.0), params, 0.25) is None
+
+
+def test_a_blocked_goal_is_approached_at_the_nearest_open_cell_a_path_can_reach():
+    from rvs_server.toolbox.planning import nearest_open_cell
+    spec = GridSpec(0.0, 0.0, 0.1, 20, 20)               # 2 x 2 m
+    cost = np.zeros(spec.shape)
+    cost[8:13, 8:13] = np.inf                            # a blocked square round the goal (1.05, 1.05) ...
+    cost[10, 10] = 0.0                                   # ... with one open cell in it, walled in
+    goal, start = (1.05, 1.05), (0.15, 0.15)
+    assert nearest_open_cell(cost, spec, goal, 0.35) == pytest.approx((1.05, 1.05))
+    outside = nearest_open_cell(cost, spec, goal, 0.35, start)     # just outside the square, 0.3 m away
+    assert math.dist(outside, goal) == pytest.approx(0.3)
+    assert max(abs(outside[0] - 1.05), abs(outside[1] - 1.05)) > 0.25
+    assert nearest_open_cell(cost, spec, goal, 0.25, start) is None

@@ -246,7 +246,8 @@ class Navigation:
         aim = self.goal
         if plan.reason == "goal_blocked":
             # Too close to a rock for the rover's centre, but arriving within the tolerance will do.
-            near = nearest_open_cell(plan.cost_grid, fused.spec, self.goal, self.cfg.tolerance - fused.spec.cell)
+            near = nearest_open_cell(plan.cost_grid, fused.spec, self.goal, self.cfg.tolerance - fused.spec.cell,
+                                     start)
             if near is not None:
                 aim = near
                 plan = plan_path(fused, start, aim, params)

@@ -18,6 +18,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.ndimage import label
 
 from .grid import GridSpec
 from .planning_costs import (UNKNOWN_POLICIES, InflatedHazards, UnknownPolicy, apply_unknown_policy,
@@ -187,12 +188,19 @@ def plan_through_unconfirmed(closed: PlanResult, open_map: MapLayers, start_xy: 
 
 
 def nearest_open_cell(cost_grid: np.ndarray, spec: GridSpec, goal_xy: tuple[float, float],
-                      radius_m: float) -> tuple[float, float] | None:
+                      radius_m: float, from_xy: tuple[float, float] | None = None) -> tuple[float, float] | None:
     """The centre of the open (finite-cost) cell nearest the goal within radius_m, or None: where to
-    aim when the goal itself is too close to a hazard but arriving within a tolerance will do."""
+    aim when the goal itself is too close to a hazard but arriving within a tolerance will do. With
+    from_xy (on an open cell), only cells a path from there can reach: a pocket of open ground walled
+    in by grown hazards is no place to aim for."""
     xs, ys = spec.centres()
     distance = np.hypot(xs[None, :] - goal_xy[0], ys[:, None] - goal_xy[1])
     candidates = np.isfinite(cost_grid) & (distance <= radius_m)
+    if from_xy is not None:
+        (start,), inside = world_to_cells(spec, np.array([from_xy], dtype=np.float64))
+        if inside[0] and np.isfinite(cost_grid[start[0], start[1]]):
+            labels, _ = label(np.isfinite(cost_grid), structure=np.ones((3, 3), bool))
+            candidates &= labels == labels[start[0], start[1]]
     if not candidates.any():
         return None
     row, col = np.unravel_index(np.argmin(np.where(candidates, distance, np.inf)), distance.shape)
