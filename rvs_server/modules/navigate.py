@@ -288,7 +288,9 @@ class Navigation:
         if look_m is not None and path_length(route) < self.settings.min_progress_m:
             self.fail(closed.reason, f"{closed.message}; the ways that are left cross ground no close look has "
                       f"confirmed, looked at from {look_m:.1f} m already", fused=closed_map)
-        if path_length(route) < self.settings.min_progress_m:
+        # The last short step onto the aim is progress, not a stall (a blocked goal's aim may lie 10 cm off).
+        last_step = drivable.complete and path_length(route) > 0 and math.dist(route[-1], aim) < fused.spec.cell
+        if path_length(route) < self.settings.min_progress_m and not last_step:
             state.stalls += 1
             if state.stalls > 1:
                 self.fail("stuck", "the safe part of the path inside the map stays too short to drive "
