@@ -702,3 +702,15 @@ def test_a_blocked_goal_is_approached_at_the_nearest_open_cell_a_path_can_reach(
     assert math.dist(outside, goal) == pytest.approx(0.3)
     assert max(abs(outside[0] - 1.05), abs(outside[1] - 1.05)) > 0.25
     assert nearest_open_cell(cost, spec, goal, 0.25, start) is None
+
+
+def test_the_hazard_margin_is_per_sensor_and_one_value_serves_both():
+    """The margin covers a map's error at a rock's edge, which is the sensor's: each may have its own."""
+    from rvs_server.modules.navigation import NavigationSettings, planning_params
+    settings = NavigationSettings(hazard_margin_m={"tof": 0.05, "stereo": 0.1})
+    assert planning_params(settings, None, "tof").clearance_m == pytest.approx(0.35)
+    assert planning_params(settings, None, "stereo").clearance_m == pytest.approx(0.40)
+    both = NavigationSettings(hazard_margin_m=0.2)
+    assert both.hazard_margin_m.of("tof") == both.hazard_margin_m.of("stereo") == 0.2
+    with pytest.raises(ValueError, match="hazard_margin_m.stereo"):
+        NavigationSettings(hazard_margin_m={"tof": 0.1, "stereo": -0.1})

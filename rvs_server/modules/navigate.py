@@ -241,7 +241,7 @@ class Navigation:
         seen, unconfirmed, unlooked, newest = self.fused_map()
         fused = closed_map = with_hazards(seen, unconfirmed)
         start = (state.pose[0], state.pose[1])
-        params = planning_params(self.settings, self.cfg.weight)
+        params = planning_params(self.settings, self.cfg.weight, self.cfg.sensor)
         plan = plan_path(fused, start, self.goal, params)
         aim = self.goal
         if plan.reason == "goal_blocked":

@@ -46,6 +46,12 @@ class PerSensor(BaseModel, Generic[T]):
     tof: T
     stereo: T
 
+    @model_validator(mode="before")
+    @classmethod
+    def _one_for_both(cls, value: Any) -> Any:
+        """A single value serves both sensors."""
+        return value if isinstance(value, (dict, PerSensor)) else {"tof": value, "stereo": value}
+
     def of(self, sensor: str) -> T:
         return getattr(self, sensor)
 
@@ -85,7 +91,9 @@ AreaSetting = Annotated[Any, PlainValidator(_area), TypeLabel("world|none|{x = [
 class NavigationSettings(Settings):
     weight: float = Field(0.5, ge=0, le=1, description="1: shortest path; 0: easiest ground")
     rover_radius_m: float = Field(0.3, gt=0, description="hazards grow by this plus the margin")
-    hazard_margin_m: float = Field(0.1, ge=0)
+    hazard_margin_m: PerSensor[Metres] = Field(
+        PerSensor[Metres](tof=0.05, stereo=0.05), description="per sensor (or one for both), the map's error at a "
+        "rock's edge; the drive error has its own cut (drive_error_sigmas)")
     proximity_falloff_m: float = Field(0.4, ge=0, description="paths keep this much farther from hazards where "
                                        "room allows (a soft cost); 0: off")
     proximity_cost: float = Field(1.0, ge=0, description="the soft cost at the grown hazards' edge")
@@ -283,9 +291,9 @@ def unlooked_ground(layers: MapLayers, looks: Sequence[tuple[float, float]], her
     return layers.unknown & ~looked
 
 
-def planning_params(settings: NavigationSettings, weight: float | None) -> PlanningParams:
+def planning_params(settings: NavigationSettings, weight: float | None, sensor: str) -> PlanningParams:
     return PlanningParams(weight=settings.weight if weight is None else weight,
-                          rover_radius_m=settings.rover_radius_m, hazard_margin_m=settings.hazard_margin_m,
+                          rover_radius_m=settings.rover_radius_m, hazard_margin_m=settings.hazard_margin_m.of(sensor),
                           unknown_policy=settings.unknown_policy, unknown_cost=settings.unknown_cost,
                           max_deviation_m=settings.max_deviation_m, proximity_falloff_m=settings.proximity_falloff_m,
                           proximity_cost=settings.proximity_cost)
@@ -355,7 +363,7 @@ def plan_path_command(ctx: JobContext, cfg: PlanPathConfig) -> dict[str, Any]:
                       [local])
     fused = within_area(fused, operating_box(server))
     fused = holes_as_hazards(fused, pose, cfg.sensor, settings)
-    params = planning_params(settings, cfg.weight)
+    params = planning_params(settings, cfg.weight, cfg.sensor)
     ctx.progress(30, "planning")
     plan = plan_path(fused, start, cfg.to, params)
     product = ctx.product(cfg, name=cfg.output)

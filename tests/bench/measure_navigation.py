@@ -4,7 +4,7 @@ Each scene is a world of the given size whose rocks cover 15-20 % of the ground 
 fractional area, drawn per scene; the rock cover of Jezero crater). The rover starts at the centre,
 facing east; the goal is drawn 8-15 m away in a random direction, kept only if a path for the rover
 exists on the TRUE map (rocks taller than the step limit and ground steeper than the slope limit,
-grown by the planner's clearance, 0.4 m) and the goal has room for the rover. For every scene and sensor a real
+grown by 0.4 m, at least navigate's own clearance) and the goal has room for the rover. For every scene and sensor a real
 server runs `navigate --to X,Y --sensor S`, and the run is scored from its product:
 
 - success: navigate answered OK and the rover truly stands within the tolerance (+0.1 m) of the goal;
@@ -38,7 +38,8 @@ from drivers.sim.world import World  # noqa: E402
 from rvs_server.toolbox.grid import GridSpec  # noqa: E402
 from rvs_server.toolbox.planning import MapLayers, PlanningParams, plan_path  # noqa: E402
 
-CLEARANCE_M = 0.4        # navigate's own: the rover's radius 0.3 m plus its margin 0.1 m
+CLEARANCE_M = 0.4        # a way for the rover's radius 0.3 m plus 0.1 m: navigate plans with a 0.05 m margin,
+                         # so a goal counts as reachable only with room to spare
 STEP_M = 0.10
 SLOPE_LIMIT_DEG = 20.0
 CELL_M = 0.05
