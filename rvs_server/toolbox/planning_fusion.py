@@ -18,9 +18,10 @@ from dataclasses import dataclass, field
 from typing import Sequence
 
 import numpy as np
-from scipy.ndimage import binary_fill_holes, distance_transform_edt, label
+from scipy.ndimage import binary_fill_holes, label
 
 from .grid import GridSpec
+from .planning_paths import mask_near_path
 
 # Overlaps thinner than this fraction of a cell are shared edges, not coverage.
 EDGE_TOLERANCE = 1e-9
@@ -191,12 +192,10 @@ def holes_on_path(cells: np.ndarray, holes: np.ndarray, cell: float, clearance_m
     """The holes (8-connected parts of the mask) that a path of grid cells (N, 2 rows and columns)
     passes within clearance_m of: those that would have closed its way as grown hazards."""
     labels, count = label(holes, structure=np.ones((3, 3), bool))
-    cells = np.asarray(cells, dtype=np.int64).reshape(-1, 2)
     if count == 0 or len(cells) == 0:
         return np.zeros(holes.shape, bool)
-    distance, (rows, cols) = distance_transform_edt(~holes, return_indices=True)
-    near = cells[distance[cells[:, 0], cells[:, 1]] <= clearance_m / cell + 1e-9]
-    crossed = labels[rows[near[:, 0], near[:, 1]], cols[near[:, 0], near[:, 1]]]
+    near, nearest = mask_near_path(cells, holes, cell, clearance_m)
+    crossed = labels[nearest[near, 0], nearest[near, 1]]
     return np.isin(labels, crossed[crossed > 0])
 
 

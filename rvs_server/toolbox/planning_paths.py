@@ -179,18 +179,26 @@ def _border_distance_at(border_distance: np.ndarray, cells: np.ndarray) -> np.nd
     return distance
 
 
+def mask_near_path(cells: np.ndarray, mask: np.ndarray, cell: float,
+                   clearance_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """For a path of grid cells (N, 2 rows and columns): which pass within clearance_m of the mask,
+    and the mask cell nearest each (N, 2). The mask must hold a cell."""
+    cells = np.asarray(cells, dtype=np.int64).reshape(-1, 2)
+    distance, (rows, cols) = distance_transform_edt(~mask, return_indices=True)
+    near = distance[cells[:, 0], cells[:, 1]] <= clearance_m / cell + 1e-9
+    return near, np.column_stack([rows[cells[:, 0], cells[:, 1]], cols[cells[:, 0], cells[:, 1]]])
+
+
 def first_touch(cells: np.ndarray, mask: np.ndarray, cell: float, clearance_m: float) -> tuple[int, int] | None:
     """The cell of mask that a path of grid cells (N, 2 rows and columns) first passes within
     clearance_m of (the nearest one to the path there), or None if it never does."""
-    cells = np.asarray(cells, dtype=np.int64).reshape(-1, 2)
     if not mask.any() or len(cells) == 0:
         return None
-    distance, (rows, cols) = distance_transform_edt(~mask, return_indices=True)
-    near = distance[cells[:, 0], cells[:, 1]] <= clearance_m / cell + 1e-9
+    near, nearest = mask_near_path(cells, mask, cell, clearance_m)
     if not near.any():
         return None
-    row, col = cells[int(np.argmax(near))]
-    return int(rows[row, col]), int(cols[row, col])
+    row, col = nearest[int(np.argmax(near))]
+    return int(row), int(col)
 
 
 def short_of_first_touch(drivable: DrivablePrefix, cells: np.ndarray, mask: np.ndarray, spec: GridSpec,
