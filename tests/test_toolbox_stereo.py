@@ -111,8 +111,26 @@ def test_small_featureless_patches_are_matched_and_large_areas_masked():
     facet = disparity[120:132, 150:162]
     assert np.isfinite(facet).mean() > 0.9
     assert np.nanmax(np.abs(facet - 20.0)) < 0.5
-    # The facet would be masked if any featureless area were: the old rule lost whole rock faces.
-    assert not S.textured(left.astype(np.uint8), S.SgbmConfig(featureless_area_px=1))[120:132, 150:162].any()
+    # A black facet is masked, however small the least masked area: it holds no signal at all.
+    black = left.copy()
+    black[120:132, 150:162] = 0.0
+    assert not S.textured(black.astype(np.uint8), S.SgbmConfig(featureless_area_px=1))[120:132, 150:162].any()
+
+
+def test_a_large_shadow_is_matched_across_from_its_edges():
+    """A shadow is featureless but holds signal, and its edges lie on the surface: masked, every rock's
+    shadow became a hole the DEM's filling made flat, and the rock with it."""
+    rng = np.random.default_rng(5)
+    left = texture(rng, (HEIGHT, WIDTH))
+    left[100:160, 120:200] = 10.0 + rng.normal(0.0, 0.3, (60, 80))   # 4800 px at grey 10, no texture
+    right = shifted(left, np.full(HEIGHT, 20.0))
+    config = S.SgbmConfig(num_disparities=64)
+    usable = S.textured(left.astype(np.uint8), config)
+    assert usable[100:160, 120:200].all()
+    disparity = np.where(usable, S.sgbm_disparity(left.astype(np.uint8), right.astype(np.uint8), config), np.nan)
+    shadow = disparity[100:160, 120:200]
+    assert np.isfinite(shadow).mean() > 0.8
+    assert np.nanpercentile(np.abs(shadow - 20.0), 95) < 0.5
 
 
 def test_disparity_to_points_on_an_ideal_rig():

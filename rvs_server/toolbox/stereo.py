@@ -72,7 +72,8 @@ class SgbmConfig:
     num_disparities: int = 128
     block_size: int = 5
     min_texture: float = 1.5          # grey levels of spread a block needs to be matched at all
-    featureless_area_px: int = 100    # featureless areas at least this large are masked (see textured)
+    featureless_area_px: int = 100    # featureless areas at least this large are masked (see textured) ...
+    signal_grey: tuple[float, float] = (3.0, 250.0)   # ... when their mean grey level is outside this range
     uniqueness_ratio: int = 10
     speckle_window_size: int = 100
     speckle_range: int = 2
@@ -106,21 +107,28 @@ def stereo_points(left: np.ndarray, right: np.ndarray, rect: Rectification,
 
 
 def textured(image: np.ndarray, config: "SgbmConfig") -> np.ndarray:
-    """False in and within a block of large featureless areas (sky, the black beyond the terrain's
-    edge, deep shadow): no block there has anything to match, and a block straddling its edge matches
-    the edge at whatever disparity a half-pixel of misalignment favours.
+    """False in and within a block of large featureless areas without signal (the black beyond the
+    terrain's edge, the rectification's fill, a saturated sky): no block there has anything to match,
+    and a block straddling its edge matches the edge at whatever disparity a half-pixel of
+    misalignment favours.
 
     Featureless patches smaller than config.featureless_area_px stay: they are surface detail, such as
     a rock's smooth facet, whose edges lie on the surface and look the same to both cameras, and
     SGBM's paths carry the disparity across them from those edges. Masking them too (with the margin)
-    took whole rocks out of the stereo maps, and the DEM's hole filling then made them flat ground."""
+    took whole rocks out of the stereo maps, and the DEM's hole filling then made them flat ground.
+    So do large dark areas that still hold some signal: shadows, whose edges lie on the surface too.
+    Masked, every rock's shadowed face and cast shadow left a hole that the filling made flat: a
+    17 cm rock 2.8 m away read as a 6 cm step, and the rover drove over it."""
     grey = np.asarray(image, np.float32)
     window = (config.block_size, config.block_size)
     mean = cv2.boxFilter(grey, -1, window)
     spread = np.sqrt(np.maximum(cv2.boxFilter(grey * grey, -1, window) - mean * mean, 0.0))
-    _, labels, stats, _ = cv2.connectedComponentsWithStats((spread < config.min_texture).astype(np.uint8),
-                                                           connectivity=8)
-    large = stats[:, cv2.CC_STAT_AREA] >= config.featureless_area_px
+    count, labels, stats, _ = cv2.connectedComponentsWithStats((spread < config.min_texture).astype(np.uint8),
+                                                               connectivity=8)
+    level = np.bincount(labels.ravel(), weights=grey.ravel(), minlength=count) / np.maximum(
+        stats[:, cv2.CC_STAT_AREA], 1)
+    no_signal = (level < config.signal_grey[0]) | (level > config.signal_grey[1])
+    large = (stats[:, cv2.CC_STAT_AREA] >= config.featureless_area_px) & no_signal
     large[0] = False                                   # label 0: the textured rest of the image
     size = 2 * config.block_size + 1
     return ~cv2.dilate(large[labels].astype(np.uint8), np.ones((size, size), np.uint8)).astype(bool)
