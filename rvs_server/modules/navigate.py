@@ -273,7 +273,7 @@ class Navigation:
                           "length_m": plan.length_m if plan.found else None, "through_unconfirmed": look_m is not None}
         if not plan.found:
             self.fail(plan.reason, plan.message, fused=fused)
-        route = clip_length(drivable.waypoints, self.settings.max_drive_m)
+        route = clip_length(drivable.waypoints, self.max_drive_m)
         record["drive"] = route.tolist()
         if error_m > 0:
             record["drive_error_cut_m"] = error_m
@@ -342,18 +342,22 @@ class Navigation:
     def short_of_drive_error(self, drivable: DrivablePrefix, plan: PlanResult,
                              spec: GridSpec) -> tuple[DrivablePrefix, float]:
         settings = self.settings
-        cut, error_m = cut_for_drive_error(clip_length(drivable.waypoints, settings.max_drive_m),
+        cut, error_m = cut_for_drive_error(clip_length(drivable.waypoints, self.max_drive_m),
                                            self.state.rover.heading, plan.hazards.distance_m, spec,
                                            settings.footprint_m, settings.drive_error, settings.drive_error_sigmas,
                                            min_drive_m=settings.min_progress_m + spec.cell)   # never a stall
         return (drivable, 0.0) if cut.complete else (cut, error_m)
 
     @property
+    def max_drive_m(self) -> float:
+        return self.settings.max_drive_m.of(self.cfg.sensor)
+
+    @property
     def look_m(self) -> float:
         return look_distance(self.settings, self.cfg.sensor)
 
     def drive_length(self, drivable: DrivablePrefix | None) -> float:
-        return 0.0 if drivable is None else path_length(clip_length(drivable.waypoints, self.settings.max_drive_m))
+        return 0.0 if drivable is None else path_length(clip_length(drivable.waypoints, self.max_drive_m))
 
     # ---------------------------------------------------------------------------------- the maps
     def fused_map(self) -> FusedMaps:

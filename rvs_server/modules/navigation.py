@@ -35,6 +35,7 @@ from .grid_canvas import Canvas
 
 T = TypeVar("T")
 Metres = Annotated[float, Field(ge=0)]
+Length = Annotated[float, Field(gt=0)]
 FarHazardPolicy = Literal["hazard", "unconfirmed"]
 HolePolicy = Literal["hazard", "unknown"]
 
@@ -117,7 +118,8 @@ class NavigationSettings(Settings):
         "navigate event, then wait for pose); auto: simulated when the devices are")
     first_pan: Range = Field((-180.0, 180.0), description="pan range of the first cycle's map (and after a stall)")
     cycle_pan: Range = Field((-180.0, 180.0), description="pan range of later cycles' maps, relative to the rover")
-    max_drive_m: float = Field(3.0, gt=0, description="drive at most this far before mapping again")
+    max_drive_m: PerSensor[Length] = Field(PerSensor[Length](tof=3.0, stereo=3.0), description="per sensor (or "
+                                           "one for both), drive at most this far before mapping again")
     drive_error: DriveError = Field(DriveError(), description="standard deviations of the rover's open-loop "
                                     "motion errors between two maps, as its GNC states them")
     drive_error_sigmas: float = Field(3.0, ge=0, description="a drive ends where this many standard deviations of "
