@@ -56,10 +56,10 @@ class ServerConfig(Settings):
 
 
 def all_modules() -> list[Module]:
-    from .modules import hopping, imaging, mapping, navigate, navigation, ptu, routes, system
+    from .modules import hopping, imaging, mapping, navigate, navigation, ptu, routes, simulation, system
     assert navigate.module is navigation.module  # navigate registers its command on navigation's module
     return [system.module, ptu.module, imaging.module, mapping.module, navigation.module, hopping.module,
-            routes.module]
+            routes.module, simulation.module]
 
 
 class ModuleConfig:
