@@ -17,7 +17,7 @@ import stat
 import sys
 import time
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Awaitable, Mapping
 
 import zmq
 from pydantic import Field, ValidationError
@@ -34,7 +34,7 @@ from .jobs import JobCounter, RecoveryStore
 from .products import Products
 from .toolbox.geometry import RoverPose
 from .protocol import BadRequest
-from .transports.tcp import start_tcp
+from .transports.tcp import claim_tcp_port, start_tcp
 from .transports.zmq import ZmqTransport
 
 log = logging.getLogger("rvs")
@@ -163,6 +163,12 @@ class Server:
         self._loop: asyncio.AbstractEventLoop | None = None
         self._stopped: asyncio.Event | None = None
         self._tcp: asyncio.AbstractServer | None = None
+        self._zmq_task: asyncio.Future | None = None
+        self._start_task: asyncio.Future | None = None
+        self._opening: asyncio.Future | None = None  # devices being opened, in a worker thread
+        self._shutdown: asyncio.Future | None = None
+        self.stopping = False  # a shutdown was asked for: start-up goes no further, jobs are refused
+        self.ready = False  # the ports are open and every device started
 
     # -- configuration --------------------------------------------------------------------------
 
@@ -272,19 +278,31 @@ class Server:
     # -- running --------------------------------------------------------------------------------
 
     async def start(self) -> None:
-        self._loop = asyncio.get_running_loop()
-        self._stopped = asyncio.Event()
+        """Claim the ports, start every device, then open the ports (see docs/PROTOCOL.md, start-up).
+
+        Until the server is ready the text port is bound but not listening (connections are
+        refused) and ZeroMQ requests wait in their queue: nothing is answered before every device
+        is started and every command can run. A shutdown requested meanwhile ends start-up at the
+        next step instead."""
         s = self.settings
-        # Listen first: a taken port must stop start-up before any device moves or a world is built.
-        self._tcp = await start_tcp(self, s.host, s.port)
-        self.zmq = ZmqTransport(self)
-        self.zmq.bind(s.host, s.zmq_port)
-        await asyncio.to_thread(self.devices.open_all)
-        for device in self.devices:
-            if device.health == "fault":
-                log.error("%s failed to open: %s (the server runs on; reset retries)", device.name,
-                          device.last_error)
+        # Claim first: a taken port must stop start-up before any device moves or a world is built.
+        listener = claim_tcp_port(s.host, s.port)
+        try:
+            self.zmq = ZmqTransport(self)
+            self.zmq.bind(s.host, s.zmq_port)
+            if not self.stopping:
+                self._opening = asyncio.get_running_loop().run_in_executor(None, self._open_devices)
+                await asyncio.shield(self._opening)
+            if self.stopping:
+                return
+            self._tcp = await start_tcp(self, listener)
+        finally:
+            if self._tcp is None:
+                listener.close()
+        if self.stopping:  # asked to stop while the listener was being set up
+            return
         self._zmq_task = asyncio.ensure_future(self.zmq.serve())
+        self.ready = True
         tcp_port = self._tcp.sockets[0].getsockname()[1]
         self.address = (s.host, tcp_port)
         log.info("RVS %s listening tcp=%s:%d zmq=%s pub=%s data=%s log=%s", self.version, s.host, tcp_port,
@@ -293,26 +311,51 @@ class Server:
         print(f"rvs-server ready tcp={s.host}:{tcp_port} zmq={self.zmq.router_endpoint} "
               f"pub={self.zmq.pub_endpoint} pid={os.getpid()}", flush=True)
 
+    def _open_devices(self) -> None:
+        """Every device, and the simulated world they share: jobs never wait for it once ready."""
+        self.devices.open_all()
+        for device in self.devices:
+            if device.health == "fault":
+                log.error("%s failed to open: %s (the server runs on; reset retries)", device.name,
+                          device.last_error)
+        if self.devices.simulated:
+            self.devices.testbed.wait_for_build()
+
     async def run(self) -> None:
-        await self.start()
-        assert self._stopped is not None
+        self._loop = asyncio.get_running_loop()
+        self._stopped = asyncio.Event()
+        self._start_task = asyncio.ensure_future(self.start())
+        await self._start_task  # a taken port raises here
         await self._stopped.wait()
 
-    def shutdown(self, reason: str = "quit"):
-        """Interrupt the job (keeping its recovery set), park and close devices, then stop."""
-        async def stop() -> dict[str, Any]:
-            job = self.dispatcher.job
-            interrupted = "none"
+    def shutdown(self, reason: str = "quit") -> Awaitable[dict[str, Any]]:
+        """Interrupt the job (keeping its recovery set), park and close devices, then stop. Safe to
+        call in any state and any number of times: every call waits for the same one shutdown."""
+        return asyncio.shield(self.begin_shutdown(reason))
+
+    def begin_shutdown(self, reason: str) -> asyncio.Future:
+        if self._shutdown is None:
+            self.stopping = True
+            self._shutdown = asyncio.ensure_future(self._stop(reason))
+        return self._shutdown
+
+    async def _stop(self, reason: str) -> dict[str, Any]:
+        job = self.dispatcher.job
+        try:
             if job is not None:
                 job.request_interrupt(reason)
                 await self.dispatcher.wait_job(job, self.settings.quit_timeout_s)
-                interrupted = job.id
+            if self._opening is not None:  # devices still opening: close them once they are open
+                await asyncio.wait({self._opening})
             await asyncio.to_thread(self._park_and_close)
+        except Exception:  # a bug; the process must end all the same
+            log.exception("shutdown: closing the devices failed")
+        finally:
+            log.info("RVS stopping (%s)", reason)
             for handler in self.log_handlers:
                 handler.flush()
             asyncio.get_running_loop().call_later(0.05, self._finish)
-            return {"job": interrupted, "recovery": self.recovery.count(), "log": str(self.log_path)}
-        return stop()
+        return {"job": job.id if job else "none", "recovery": self.recovery.count(), "log": str(self.log_path)}
 
     def _park_and_close(self) -> None:
         for device in self.devices:
@@ -326,8 +369,9 @@ class Server:
                 session.close()
         if self._tcp is not None:
             self._tcp.close()
-        if self.zmq is not None:
+        if self._zmq_task is not None:
             self._zmq_task.cancel()
+        if self.zmq is not None:
             self.zmq.close()
             self.zmq = None
         self.dispatcher.shutdown()
@@ -379,6 +423,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run the server. rvs_server/__main__.py blocks SIGINT and SIGTERM from the first instant; they
+    are unblocked once the loop handles them, so one sent during start-up is delivered then."""
     args = parse_args(argv)
     overrides = {"host": args.host, "port": args.port, "zmq_port": args.zmq_port, "data_dir": args.data_dir,
                  "sim_speed": args.sim_speed, "token_file": args.token_file, "world_seed": args.world_seed,
@@ -392,7 +438,8 @@ def main(argv: list[str] | None = None) -> int:
     async def run() -> None:
         loop = asyncio.get_running_loop()
         for sig in (signal.SIGINT, signal.SIGTERM):
-            loop.add_signal_handler(sig, lambda: asyncio.ensure_future(server.shutdown("quit")))
+            loop.add_signal_handler(sig, lambda s=sig: _on_signal(server, s))
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT, signal.SIGTERM})
         await server.run()
 
     try:
@@ -401,7 +448,16 @@ def main(argv: list[str] | None = None) -> int:
         print(f"rvs-server: cannot listen: {exc}", file=sys.stderr)
         server.devices.close_all()
         return 2
+    finally:
+        # The loop's handlers are gone; a signal while the interpreter winds down is no news.
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, signal.SIG_IGN)
     return 0
+
+
+def _on_signal(server: Server, signum: int) -> None:
+    log.info("%s received: stopping", signal.Signals(signum).name)
+    server.begin_shutdown("quit")
 
 
 if __name__ == "__main__":

@@ -227,6 +227,8 @@ class Dispatcher:
         """Raise the error the mode gives this command, if any."""
         if spec.kind == "immediate":
             return
+        if self.server.stopping:
+            raise WrongMode(f"the server is shutting down; {spec.name} is refused")
         if self.sleep_until is not None and spec.name != "standby":
             left = max(0.0, self.sleep_until - self.server.clock.now())
             raise Sleeping(f"sleeping for {left:.1f} s more; {spec.name} is refused until then (standby wakes "

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import socket
 from typing import Any, Mapping
 
 from ..dispatch import Request, Session
@@ -165,6 +166,23 @@ class TextConnection(asyncio.Protocol):
             self.transport.close()
 
 
-async def start_tcp(server: Any, host: str, port: int) -> asyncio.AbstractServer:
+def claim_tcp_port(host: str, port: int) -> socket.socket:
+    """Bind the text port without listening: a taken port fails at once, before anything starts,
+    and connections are refused (not answered) until `start_tcp` opens it."""
+    infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
+    family, kind, proto, _, address = sorted(infos, key=lambda info: info[0] != socket.AF_INET)[0]
+    sock = socket.socket(family, kind, proto)
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        sock.bind(address)
+        sock.setblocking(False)
+    except OSError:
+        sock.close()
+        raise
+    return sock
+
+
+async def start_tcp(server: Any, sock: socket.socket) -> asyncio.AbstractServer:
+    """Listen on a claimed socket (see claim_tcp_port): from now on clients are answered."""
     loop = asyncio.get_running_loop()
-    return await loop.create_server(lambda: TextConnection(server), host, port, reuse_address=True)
+    return await loop.create_server(lambda: TextConnection(server), sock=sock)
