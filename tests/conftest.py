@@ -18,7 +18,7 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parent.parent
-SERVER = [sys.executable, "-m", "rvs_server.app"]
+SERVER = [sys.executable, "-m", "rvs_server"]
 SIM_SPEED = 50.0
 
 
