@@ -16,6 +16,8 @@ import signal
 import stat
 import sys
 import time
+from dataclasses import dataclass
+from logging.handlers import RotatingFileHandler
 from pathlib import Path
 from typing import Any, Awaitable, Mapping
 
@@ -53,6 +55,36 @@ class ServerConfig(Settings):
     break_timeout_s: float = Field(30.0, gt=0, description="how long break waits for a safe point")
     quit_timeout_s: float = Field(30.0, gt=0, description="how long quit waits for the job to stop")
     log_level: str = Field("INFO", pattern="^(DEBUG|INFO|WARNING|ERROR)$")
+    log_file_max_mb: float = Field(10.0, gt=0, le=10_000, description="a log file rotates at this size")
+    log_files_kept: int = Field(5, ge=2, le=1000, description="log files kept in DATA_DIR/logs, all runs together")
+
+
+@dataclass(frozen=True)
+class Configuration:
+    """Everything read from the configuration directory, as one value: built whole, then swapped in."""
+
+    settings: ServerConfig
+    devices: DevicesConfig
+    world: WorldConfig
+    world_file: Path | None
+    calibration: CalibrationConfig
+    modules: dict[str, "ModuleConfig"]
+
+
+def read_configuration(config_dir: Path, overrides: Mapping[str, Any], modules: list[Module]) -> Configuration:
+    """Read and validate every file; raises ConfigError naming the file and the field."""
+    server_keys = set(ServerConfig.model_fields)
+    settings = load_model(config_dir / "server.toml", ServerConfig,
+                          {k: v for k, v in overrides.items() if k in server_keys})
+    devices = load_model(config_dir / "devices.toml", DevicesConfig)
+    seed = overrides.get("world_seed")
+    world = load_model(config_dir / "world.toml", WorldConfig, {"seed": seed} if seed is not None else None)
+    world_file = Path(overrides["world"]) if overrides.get("world") else None
+    if world_file is not None and not world_file.exists():
+        raise ConfigError(f"--world {world_file}: no such file")
+    calibration = load_model(config_dir / "calibration.toml", CalibrationConfig)
+    module_configs = {m.name: load_module_config(config_dir, m) for m in modules}
+    return Configuration(settings, devices, world, world_file, calibration, module_configs)
 
 
 def all_modules() -> list[Module]:
@@ -173,27 +205,20 @@ class Server:
     # -- configuration --------------------------------------------------------------------------
 
     def _load_configuration(self) -> None:
-        d = self.config_dir
-        server_keys = set(ServerConfig.model_fields)
-        self.settings = load_model(d / "server.toml", ServerConfig,
-                                   {k: v for k, v in self.overrides.items() if k in server_keys})
-        self.devices_config = load_model(d / "devices.toml", DevicesConfig)
-        seed = self.overrides.get("world_seed")
-        self.world_config = load_model(d / "world.toml", WorldConfig, {"seed": seed} if seed is not None else None)
-        self.world_file = Path(self.overrides["world"]) if self.overrides.get("world") else None
-        self.calibration_config = load_model(d / "calibration.toml", CalibrationConfig)
-        if self.world_file is not None and not self.world_file.exists():
-            raise ConfigError(f"--world {self.world_file}: no such file")
-        self.module_configs = {m.name: load_module_config(d, m) for m in self.modules}
+        self._use(read_configuration(self.config_dir, self.overrides, self.modules))
 
     def reload_configuration(self) -> None:
-        """`reinit`: read every file again; on any error keep the running configuration."""
-        old = (self.settings, self.devices_config, self.world_config, self.module_configs)
+        """`reinit`: read every file again. The whole new configuration is built before any of it is
+        used, so a refused reload changes nothing."""
         try:
-            self._load_configuration()
+            configuration = read_configuration(self.config_dir, self.overrides, self.modules)
         except ConfigError as exc:
-            self.settings, self.devices_config, self.world_config, self.module_configs = old
             raise BadRequest(f"configuration not reloaded: {exc}") from None
+        self._use(configuration)
+
+    def _use(self, c: Configuration) -> None:
+        self.settings, self.devices_config, self.world_config = c.settings, c.devices, c.world
+        self.world_file, self.calibration_config, self.module_configs = c.world_file, c.calibration, c.modules
 
     def module_settings(self, module: Module | None) -> Any:
         return self.module_configs[module.name].settings if module else None
@@ -244,7 +269,7 @@ class Server:
         root = logging.getLogger("rvs")
         root.setLevel(self.settings.log_level)
         fmt = logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s")
-        to_file = logging.FileHandler(path)
+        to_file = BoundedLogFile(path, int(self.settings.log_file_max_mb * 1e6), self.settings.log_files_kept)
         to_file.setFormatter(fmt)
         to_stderr = logging.StreamHandler(sys.stderr)
         to_stderr.setFormatter(fmt)
@@ -420,6 +445,31 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--world-seed", type=int, help="seed of the simulated world (default: configs/world.toml)")
     parser.add_argument("--world", help="a saved simulated world (.npz) to load instead of building one")
     return parser.parse_args(argv)
+
+
+class BoundedLogFile(RotatingFileHandler):
+    """A log file that rotates at `max_bytes` and keeps at most `kept` log files in its directory,
+    this run's and earlier runs' together: a week of running cannot fill the disk."""
+
+    def __init__(self, path: Path, max_bytes: int, kept: int):
+        super().__init__(path, maxBytes=max_bytes, backupCount=kept - 1)
+        self.kept = kept
+        self.prune()
+
+    def doRollover(self) -> None:
+        super().doRollover()
+        self.prune()
+
+    def prune(self) -> None:
+        folder = Path(self.baseFilename).parent
+        logs = []
+        for path in folder.glob("rvs-*.log*"):
+            try:
+                logs.append((path.stat().st_mtime, path))
+            except FileNotFoundError:  # another server on this data directory pruned it
+                pass
+        for _, path in sorted(logs)[:-self.kept]:
+            path.unlink(missing_ok=True)
 
 
 def main(argv: list[str] | None = None) -> int:
