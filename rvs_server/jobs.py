@@ -17,7 +17,7 @@ import os
 import shutil
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import MISSING, dataclass, field, fields
 from pathlib import Path
 from typing import Any, Callable
 
@@ -52,6 +52,12 @@ class RecoverySet:
         return dict(self.__dict__)
 
 
+class UnreadableRecoverySet(Exception):
+    def __init__(self, job: str, path: Path, reason: str):
+        super().__init__(f"recovery set {job} ({path}) is unreadable: {reason}")
+        self.job = job
+
+
 class RecoveryStore:
     """Recovery sets as JSON files under `<data>/recovery/`, written atomically."""
 
@@ -71,16 +77,41 @@ class RecoveryStore:
             os.fsync(handle.fileno())  # a power cut must not leave a half-written set
         os.replace(tmp, self._path(rset.job))
 
-    def load(self, job: str) -> RecoverySet | None:
+    def read(self, job: str) -> RecoverySet | None:
+        """The stored set of `job`, None if there is none; raises UnreadableRecoverySet naming the file
+        when it is damaged (edited by hand, a disk error), so `continue` can say which."""
         path = self._path(job)
-        if not path.exists():
-            return None
         try:
             with open(path) as handle:
-                return RecoverySet(**json.load(handle))
-        except (OSError, ValueError, TypeError) as exc:
-            log.error("recovery set %s is unreadable: %s", path, exc)
+                data = json.load(handle)
+        except FileNotFoundError:
             return None
+        except (OSError, ValueError) as exc:
+            raise UnreadableRecoverySet(job, path, str(exc)) from None
+        problem = _recovery_set_problem(data, job)
+        if problem:
+            raise UnreadableRecoverySet(job, path, problem)
+        return RecoverySet(**data)
+
+    def load(self, job: str) -> RecoverySet | None:
+        """Like read, but a damaged set is logged and counts as none."""
+        try:
+            return self.read(job)
+        except UnreadableRecoverySet as exc:
+            log.error("%s", exc)
+            return None
+
+    def jobs(self) -> list[str]:
+        """Every stored set's job id, readable or not, oldest update first (a damaged set by its file's
+        time, which its last save set)."""
+        def updated(path: Path) -> tuple[float, int]:
+            rset = self.load(path.stem)
+            try:
+                when = rset.updated if rset else path.stat().st_mtime
+            except FileNotFoundError:
+                when = 0.0
+            return when, _job_number(path.stem)
+        return [p.stem for p in sorted(self.directory.glob("*.json"), key=updated)]
 
     def folder(self, job: str) -> Path:
         """A job's working folder: its workflow checkpoints live here, beside its recovery set."""
@@ -98,8 +129,36 @@ class RecoveryStore:
         sets = self.all()
         return sets[-1] if sets else None
 
+    def latest_job(self) -> str | None:
+        """The job `continue` resumes by default, even if its set is damaged: resuming an older job
+        instead would surprise whoever drives the rover."""
+        jobs = self.jobs()
+        return jobs[-1] if jobs else None
+
     def count(self) -> int:
         return sum(1 for _ in self.directory.glob("*.json"))
+
+
+_RECOVERY_FIELDS = {f.name: f for f in fields(RecoverySet)}
+
+
+def _recovery_set_problem(data: Any, job: str) -> str:
+    """What makes stored JSON not a recovery set of `job`, or "" if nothing does."""
+    if not isinstance(data, dict):
+        return "not a JSON object"
+    missing = [name for name, f in _RECOVERY_FIELDS.items()
+               if name not in data and f.default is MISSING and f.default_factory is MISSING]
+    if missing:
+        return "missing " + ", ".join(missing)
+    unknown = sorted(set(data) - set(_RECOVERY_FIELDS))
+    if unknown:
+        return "unknown fields " + ", ".join(unknown)
+    if data["job"] != job:
+        return f"it names job {data['job']!r}, not {job}"
+    for name, kind in (("command", str), ("line", str), ("options", dict), ("devices", list)):
+        if name in data and not isinstance(data[name], kind):
+            return f"{name} is not a {kind.__name__}"
+    return ""
 
 
 def _job_number(job: str) -> int:

@@ -170,6 +170,29 @@ def test_abort_drops_the_recovery_set(server):
         assert "wrong-mode" in c.command("abort")
 
 
+def test_a_damaged_recovery_set_is_named_and_the_others_stay_usable(server_factory, tmp_path):
+    recovery = tmp_path / "data" / "recovery"
+    recovery.mkdir(parents=True)
+    (recovery / "7.json").write_text(json.dumps({
+        "job": "7", "command": "move-ptu", "options": {"pan": 20.0, "tilt": 0.0}, "line": "move-ptu --pan 20",
+        "state": None, "reason": "break", "percent": 0.0, "devices": ["ptu"], "created": 1.0, "updated": 1.0}))
+    (recovery / "8.json").write_text('{"job": "8", "command": "move-pt')  # cut short by a disk error
+    (recovery / "9.json").write_text('{"job": "9"}')  # edited by hand
+    server = server_factory()
+    with server.connect() as c:
+        reply = c.command("continue")  # the newest set is damaged: say so rather than resume an older job
+        assert "ERR 409 wrong-mode recovery set 9 (" in reply and "9.json) is unreadable: missing command" in reply
+        assert "abort --job 9 drops it; continue --job ID resumes another (7)" in reply
+        reply = c.command("continue --job 8")
+        assert "recovery set 8 (" in reply and "is unreadable" in reply
+        assert pairs(c.command("status"))["recovery"] == "3"  # nothing was dropped by asking
+        assert abs(float(pairs(c.command("continue --job 7", timeout=60))["pan"]) - 20.0) < 0.06
+        assert pairs(c.command("abort --job 8")) == {"job": "8", "command": "unknown", "mode": "standby",
+                                                   "recovery": "1"}
+        assert pairs(c.command("abort"))["job"] == "9"
+        assert "nothing to resume (stored: none)" in c.command("continue")
+
+
 def test_relative_move_is_resolved_once_so_continue_does_not_add_it_twice(server):
     with server.connect() as c:
         start = float(pairs(c.command("move-ptu --pan 10 --speed 50"))["pan"])

@@ -11,6 +11,7 @@ from pydantic import Field
 from .. import __version__
 from ..config import CommandConfig, describe_allowed, describe_default, option_name, type_label
 from ..dispatch import Call, Module, Request
+from ..jobs import UnreadableRecoverySet
 from ..protocol import (EVENT_TOPICS, BadRequest, DeviceError, RvsError, Timeout, Unauthorized, WrongMode,
                         parse_line)
 
@@ -141,12 +142,23 @@ class JobChoice(CommandConfig):
 
 
 def _recovery_set(server: Any, job: str | None):
-    rset = server.recovery.load(job) if job else server.recovery.latest()
+    """The named (or the latest) recovery set; a damaged one is named with what can be done."""
+    chosen = job or server.recovery.latest_job()
+    try:
+        rset = server.recovery.read(chosen) if chosen else None
+    except UnreadableRecoverySet as exc:
+        others = [r.job for r in server.recovery.all()]
+        hint = f"; continue --job ID resumes another ({', '.join(others)})" if others else ""
+        raise WrongMode(f"{exc}; abort --job {chosen} drops it{hint}") from None
     if rset is None:
-        stored = ", ".join(r.job for r in server.recovery.all()) or "none"
-        what = f"no recovery set for job {job}" if job else "nothing to resume"
-        raise WrongMode(f"{what} (stored: {stored})")
+        raise _no_set(server, job)
     return rset
+
+
+def _no_set(server: Any, job: str | None) -> WrongMode:
+    stored = ", ".join(server.recovery.jobs()) or "none"
+    what = f"no recovery set for job {job}" if job else "nothing to resume"
+    return WrongMode(f"{what} (stored: {stored})")
 
 
 @module.command("continue", JobChoice)
@@ -172,10 +184,13 @@ def continue_(call: Call, cfg: JobChoice):
 def abort(call: Call, cfg: JobChoice) -> dict[str, Any]:
     """End an interrupted job for good: drop its recovery set, keep what it produced."""
     server = call.server
-    rset = _recovery_set(server, cfg.job)
-    server.recovery.delete(rset.job)
+    job = cfg.job or server.recovery.latest_job()
+    if job is None or job not in server.recovery.jobs():
+        raise _no_set(server, cfg.job)
+    rset = server.recovery.load(job)  # None when damaged: dropping it is how to be rid of it
+    server.recovery.delete(job)
     server.dispatcher.set_mode("standby")
-    return {"job": rset.job, "command": rset.command, "mode": server.dispatcher.mode,
+    return {"job": job, "command": rset.command if rset else "unknown", "mode": server.dispatcher.mode,
             "recovery": server.recovery.count()}
 
 
