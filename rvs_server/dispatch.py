@@ -12,9 +12,11 @@ import asyncio
 import difflib
 import inspect
 import logging
+import os
 import traceback
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Awaitable, Callable, Literal, Mapping, Protocol
 
 from drivers.errors import DeviceFault, DeviceTimeout
@@ -276,8 +278,8 @@ class Dispatcher:
         except RvsError as exc:
             sink.error(exc)
             return
-        except Exception:  # a bug: keep the server up, tell the client where to look
-            sink.error(self._internal(request.command))
+        except Exception as exc:  # keep the server up, tell the client what happened or where to look
+            sink.error(self._unexpected(request.command, exc))
             return
         if inspect.isawaitable(outcome):
             asyncio.ensure_future(self._deliver(request.command, outcome, sink))
@@ -289,10 +291,20 @@ class Dispatcher:
             result = await outcome
         except RvsError as exc:
             sink.error(exc)
-        except Exception:
-            sink.error(self._internal(command))
+        except Exception as exc:
+            sink.error(self._unexpected(command, exc))
         else:
             sink.ok(result or {})
+
+    def _unexpected(self, where: str, exc: Exception) -> RvsError:
+        """An exception no command turned into a reply. A file of the data directory that someone
+        removed while the command used it is not a bug: say which; anything else is."""
+        missing = _missing_data_file(exc, self.server.data_dir)
+        if missing is None:
+            return self._internal(where)
+        log.warning("%s: %s was removed while in use (%s)", where, missing, exc)
+        return WrongMode(f"{missing} was removed while {where} used it; nothing more was done (run the "
+                         f"command that makes it again)")
 
     def _internal(self, where: str) -> InternalError:
         log.error("internal error in %s\n%s", where, traceback.format_exc())
@@ -355,8 +367,8 @@ class Dispatcher:
                             data=self._recovery_data(kept)) from None
         except RvsError:
             raise
-        except Exception:
-            raise self._internal(f"job {job.id} ({job.command})") from None
+        except Exception as exc:
+            raise self._unexpected(f"job {job.id} ({job.command})", exc) from None
         finally:
             for product in ctx.products:  # a product the job did not finish says why in its manifest
                 if not product.finished:
@@ -405,6 +417,15 @@ def _run_handler(spec: CommandSpec, ctx: JobContext, cfg: Any) -> Any:
             ctx.progress(0.0, "waiting for the simulated world to be built")
         devices.testbed.wait_for_build()
     return spec.handler(ctx, cfg)
+
+
+def _missing_data_file(exc: Exception, data_dir: Path) -> str | None:
+    """The data-directory path (relative) that `exc` found missing, or None."""
+    filename = getattr(exc, "filename", None)
+    if not isinstance(exc, (FileNotFoundError, NotADirectoryError)) or not filename:
+        return None
+    path = Path(os.fsdecode(filename)).absolute()
+    return str(path.relative_to(data_dir)) if path.is_relative_to(data_dir) else None
 
 
 def _device_error(exc: Exception) -> RvsError:

@@ -49,7 +49,13 @@ def test_bad_goals_are_refused_before_anything_is_planned(server):
         assert "ERR 400 bad-request --to 500,500 is outside the operating area: x -6" in reply, reply
         assert "(navigation.toml operating_area)" in reply
         assert "is outside the operating area" in c.command("navigate --to 0,150")
+        # A map file removed by hand while the server runs: named, and the server carries on.
+        (server.data_dir / "products" / "arc" / "hazard.tif").unlink()
+        reply = c.command("plan-path --to 2,0 --output gone", timeout=120)
+        assert "ERR 409 wrong-mode products/arc/hazard.tif was removed while" in reply and "plan-path" in reply
+        assert c.command("status").split()[1] == "OK"
     assert not (server.data_dir / "products" / "nowhere").exists()
+    assert "internal error" not in "".join(p.read_text() for p in (server.data_dir / "logs").iterdir())
 
 
 def test_without_an_operating_area_the_planner_reach_still_bounds_goals(server_factory):
