@@ -17,7 +17,7 @@ import annotated_types
 from pydantic import AfterValidator, BaseModel, BeforeValidator, ConfigDict, Field, ValidationError
 from pydantic.fields import FieldInfo
 
-from .protocol import BadRequest, check_safe_name, format_value, parse_point, parse_range
+from .protocol import BadRequest, check_safe_name, format_value, option_name, parse_point, parse_range
 
 
 @dataclass(frozen=True)
@@ -152,11 +152,6 @@ def describe_default(info: FieldInfo) -> str:
         return "required"
     default = info.get_default(call_default_factory=True)
     return "none" if default is None else format_value(default)
-
-
-def option_name(field_name: str) -> str:
-    """`speed` -> `--speed`; a field named after a Python keyword (`from_`) is `--from`."""
-    return "--" + field_name.rstrip("_").replace("_", "-")
 
 
 def describe_validation_error(exc: ValidationError, model: type[BaseModel], where: str,

@@ -164,6 +164,12 @@ def quote_token(token: str) -> str:
     return token if token and _BARE_VALUE_RE.fullmatch(token) and "'" not in token else shlex.quote(token)
 
 
+def option_name(field_name: str) -> str:
+    """`speed` -> `--speed`; a field named after a Python keyword (`from_`) is `--from`. The one rule
+    for the server's parser, its help and the clients' build_line."""
+    return "--" + field_name.rstrip("_").replace("_", "-")
+
+
 def build_line(command: str, positionals: Iterable[Any] = (), options: Mapping[str, Any] | None = None,
                tag: str | None = None) -> str:
     """Compose a command line from parts (used by clients that call commands by name)."""
@@ -171,11 +177,11 @@ def build_line(command: str, positionals: Iterable[Any] = (), options: Mapping[s
     words.append(command)
     words.extend(quote_token(format_value(v)) for v in positionals)
     for name, value in (options or {}).items():
-        flag = "--" + name.replace("_", "-")
+        flag = option_name(name)
         if value is True:
             words.append(flag)
         elif value is False:
-            words.append("--no-" + name.replace("_", "-"))
+            words.append("--no-" + flag[2:])
         elif value is not None:
             words.extend([flag, quote_token(format_value(value))])
     return " ".join(words)

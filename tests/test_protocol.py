@@ -116,6 +116,24 @@ def test_build_line_is_parsed_back_to_the_same_tokens():
     assert parsed.tag == "q" and parsed.tokens == ("--output", "a b", "--frames", "3", "--relative")
 
 
+def test_build_line_names_options_as_the_server_binds_them():
+    """Field names as the commands' Config classes have them (`from_`, `no_sun`) give the flags the
+    server's parser expects, so `build_line` and `help` can never disagree."""
+    from rvs_server.app import all_modules
+    from rvs_server.config import bind_tokens, option_name
+    checked = 0
+    for module in all_modules():
+        for spec in module.commands:
+            for name, field in spec.config.model_fields.items():
+                if name in spec.positionals or field.annotation is bool:
+                    continue
+                tokens = parse_line(build_line(spec.name, options={name: "x"})).tokens
+                assert tokens[0] == option_name(name)  # the flag `help` shows
+                assert name in bind_tokens(spec.name, tokens, spec.config, spec.positionals), (spec.name, name)
+                checked += 1
+    assert checked > 50
+
+
 def test_telnet_negotiation_is_removed_across_chunks():
     filt = TelnetFilter()
     stream = b"\xff\xfb\x01sta" + b"\xff\xfa\x18\x00xterm\xff\xf0" + b"tus\r\n"
