@@ -21,6 +21,8 @@ from dataclasses import MISSING, dataclass, field, fields
 from pathlib import Path
 from typing import Any, Callable
 
+from .files import write_json_atomic
+
 
 log = logging.getLogger("rvs.jobs")
 
@@ -70,12 +72,8 @@ class RecoveryStore:
 
     def save(self, rset: RecoverySet) -> None:
         rset.updated = time.time()
-        tmp = self._path(rset.job).with_suffix(".tmp")
-        with open(tmp, "w") as handle:
-            json.dump(rset.to_json(), handle, indent=1, default=_jsonable)
-            handle.flush()
-            os.fsync(handle.fileno())  # a power cut must not leave a half-written set
-        os.replace(tmp, self._path(rset.job))
+        # A kill or a power cut must not leave a half-written set.
+        write_json_atomic(self._path(rset.job), rset.to_json(), default=_jsonable)
 
     def read(self, job: str) -> RecoverySet | None:
         """The stored set of `job`, None if there is none; raises UnreadableRecoverySet naming the file

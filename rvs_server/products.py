@@ -9,7 +9,6 @@ becomes `run-2`. When devices are simulated, the simulator's truth for that mome
 from __future__ import annotations
 
 import json
-import os
 import platform
 import re
 import time
@@ -19,6 +18,7 @@ from typing import Any, Callable, Mapping
 import numpy as np
 
 from . import __version__
+from .files import write_json_atomic
 from .protocol import BadRequest, check_safe_name
 
 
@@ -59,14 +59,13 @@ class Product:
         return target
 
     def add(self, relative: str, description: str) -> Path:
-        """Register a file (written by the caller) with what it holds."""
+        """Register a file with what it holds; the caller writes it, through rvs_server.files so that a
+        kill never leaves half of it."""
         self.manifest["files"][relative] = description
         return self.file(relative)
 
     def write_json(self, relative: str, data: Any, description: str) -> Path:
-        target = self.add(relative, description)
-        _atomic_write(target, json.dumps(data, indent=1, default=_jsonable) + "\n")
-        return target
+        return write_json_atomic(self.add(relative, description), data, default=_jsonable)
 
     def timing(self, step: str, seconds: float) -> None:
         self.manifest["timings_s"][step] = round(float(seconds), 4)
@@ -79,9 +78,7 @@ class Product:
         self.finished = True
         self.manifest["status"] = status
         self.manifest["finished"] = time.strftime("%Y-%m-%dT%H:%M:%S%z")
-        target = self.path / "product.json"
-        _atomic_write(target, json.dumps(self.manifest, indent=1, default=_jsonable) + "\n")
-        return target
+        return write_json_atomic(self.path / "product.json", self.manifest, default=_jsonable)
 
 
 class ProductPart:
@@ -164,12 +161,6 @@ class Products:
         product = Product(best[1], best[1].name, data["command"], data.get("arguments", {}), data.get("config"))
         product.manifest = data
         return product
-
-
-def _atomic_write(target: Path, text: str) -> None:
-    tmp = target.with_name(f".{target.name}.tmp")
-    tmp.write_text(text)
-    os.replace(tmp, target)
 
 
 def _jsonable(value: Any) -> Any:
