@@ -4,7 +4,7 @@ GeoTIFFs are float32 with NaN as no-data and carry the grid's georeferencing in 
 (ModelPixelScale, ModelTiepoint, GeoKeyDirectory, GDAL_NODATA), so GDAL and rasterio open them with
 their origin and cell size. The world frame is a local engineering frame, declared as a
 user-defined projected system in metres. Grids are stored north up (the array flipped on its first
-axis, since RVS grids count rows northwards).
+axis, since RVS grids count rows northwards). Every file is written atomically (rvs_server.files).
 """
 from __future__ import annotations
 
@@ -15,6 +15,7 @@ import cv2
 import numpy as np
 import tifffile
 
+from .files import atomic_path
 from .toolbox.grid import GridSpec
 
 # GeoTIFF keys: raster is "pixel is area"; model type projected; a user-defined projection in metres.
@@ -25,8 +26,9 @@ _USER_DEFINED, _METRE = 32767, 9001
 def write_png(path: Path, rgb: np.ndarray) -> Path:
     """RGB (or grey) uint8 to PNG."""
     image = rgb[..., ::-1] if rgb.ndim == 3 else rgb
-    if not cv2.imwrite(str(path), np.ascontiguousarray(image)):
-        raise OSError(f"cannot write {path}")
+    with atomic_path(path) as tmp:
+        if not cv2.imwrite(str(tmp), np.ascontiguousarray(image)):
+            raise OSError(f"cannot write {path}")
     return path
 
 
@@ -39,8 +41,9 @@ def read_png(path: Path) -> np.ndarray:
 
 def write_tiff(path: Path, array: np.ndarray, description: str = "", metadata: dict[str, Any] | None = None) -> Path:
     """Raw values, unchanged dtype, with a description and JSON metadata in the file."""
-    tifffile.imwrite(path, array, description=description or None, metadata=metadata or None,
-                     compression="zlib", photometric="minisblack" if array.ndim == 2 else None)
+    with atomic_path(path) as tmp:
+        tifffile.imwrite(tmp, array, description=description or None, metadata=metadata or None,
+                         compression="zlib", photometric="minisblack" if array.ndim == 2 else None)
     return path
 
 
@@ -68,8 +71,9 @@ def write_geotiff(path: Path, grid_values: np.ndarray, grid: GridSpec, descripti
         (34737, "s", 0, citation + "|", True),                            # GeoAsciiParamsTag
         (42113, "s", 0, "nan", True),                                     # GDAL_NODATA
     ]
-    tifffile.imwrite(path, north_up, description=description or None, extratags=extratags,
-                     compression="zlib", photometric="minisblack", metadata=None)
+    with atomic_path(path) as tmp:
+        tifffile.imwrite(tmp, north_up, description=description or None, extratags=extratags,
+                         compression="zlib", photometric="minisblack", metadata=None)
     return path
 
 

@@ -35,6 +35,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, ValidationError
 
 from .config import describe_validation_error
+from .files import save_npz_atomic, write_text_atomic
 from .toolbox.grid import GridSpec
 
 # `$args.cell` or `${args.cell}` (the braces need block style in YAML; flow style takes the bare form).
@@ -243,12 +244,11 @@ def save_result(directory: Path, step: str, result: Any) -> None:
     arrays: dict[str, np.ndarray] = {}
     tree = _encode(result, arrays)
     directory.mkdir(parents=True, exist_ok=True)
-    tmp = directory / f".{step}.tmp.npz"
-    np.savez(tmp, **arrays)
-    (directory / f".{step}.tmp.json").write_text(json.dumps(tree))
-    # The JSON is renamed last: a step counts as done only when both halves are complete.
-    tmp.replace(directory / f"{step}.npz")
-    (directory / f".{step}.tmp.json").replace(directory / f"{step}.json")
+    # The JSON goes first and comes back last: a step counts as done only when both halves are whole
+    # and of the same save.
+    (directory / f"{step}.json").unlink(missing_ok=True)
+    save_npz_atomic(directory / f"{step}.npz", arrays)
+    write_text_atomic(directory / f"{step}.json", json.dumps(tree))
 
 
 def load_result(directory: Path, step: str) -> Any:

@@ -21,6 +21,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import pycolmap
 
+from ..files import atomic_file
 from ..hop_sfm import HopReconstruction, SfmConfig, densify, reconstruct_hop, timed
 from ..jobs import JobContext
 from ..protocol import BadRequest, RvsError
@@ -248,8 +249,8 @@ PICTURES = {"topdown.png": "top-down map of the dense cloud: mean grey level per
 def write_trajectory_csv(product: Any, observation: HopObservation, estimate: HopEstimate) -> None:
     flight = estimate.result.flight
     positions = apply(estimate.to_world, estimate.com_hop)
-    with open(product.add("trajectory.csv", "per registered frame: time, estimated centre of mass (world), "
-                          "inlier of the parabola fit, residual"), "w", newline="") as handle:
+    with atomic_file(product.add("trajectory.csv", "per registered frame: time, estimated centre of mass (world), "
+                                 "inlier of the parabola fit, residual"), "w", newline="") as handle:
         writer = csv.writer(handle)
         writer.writerow(["frame", "t_s", "x", "y", "z", "inlier", "residual_m"])
         for k, index in enumerate(estimate.registered):

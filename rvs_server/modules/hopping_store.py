@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from ..files import atomic_file, save_npz_atomic
 from ..hop_sfm import HopReconstruction
 from ..toolbox.geometry import Intrinsics
 
@@ -61,9 +62,10 @@ def next_hop_number(products_root: Path) -> int:
 
 def write_hop(product: Any, record: Any, number: int) -> None:
     """A simulated HopRecord into a hop product: the rover's view at the top, the truth in truth/."""
-    np.savez_compressed(product.add("frames.npz", "frames (N, h, w) uint8 from launch to the first touchdown, "
-                                    "timestamps (N,) s after launch, before / after: at rest"),
-                        frames=record.frames, timestamps=record.timestamps, before=record.before, after=record.after)
+    save_npz_atomic(product.add("frames.npz", "frames (N, h, w) uint8 from launch to the first touchdown, "
+                                "timestamps (N,) s after launch, before / after: at rest"),
+                    {"frames": record.frames, "timestamps": record.timestamps, "before": record.before,
+                     "after": record.after}, compressed=True)
     product.write_json("hop.json", {
         "format": HOP_FORMAT, "hop": number,
         "command": {"speed_mps": record.commanded_speed, "elevation_deg": math.degrees(record.commanded_elevation),
@@ -85,10 +87,10 @@ def write_hop(product: Any, record: Any, number: int) -> None:
     product.write_json("truth/hop.json", {"config": record.config.model_dump(mode="json"), "truth": record.truth()},
                        "simulator truth of the hop: launch actually flown, first touchdown, bounces, rest "
                        "(drivers/sim/hopper_record.py truth())")
-    np.savez_compressed(product.add("truth/poses.npz", "true camera-to-world poses: camera_to_world (N, 4, 4), "
-                                    "before_pose, after_pose"),
-                        camera_to_world=record.camera_to_world, before_pose=record.before_pose,
-                        after_pose=record.after_pose)
+    save_npz_atomic(product.add("truth/poses.npz", "true camera-to-world poses: camera_to_world (N, 4, 4), "
+                                "before_pose, after_pose"),
+                    {"camera_to_world": record.camera_to_world, "before_pose": record.before_pose,
+                     "after_pose": record.after_pose}, compressed=True)
 
 
 def load_observation(folder: Path) -> HopObservation:
@@ -117,7 +119,7 @@ def load_truth(folder: Path) -> dict | None:
 # ------------------------------------------------------------------------------------ reconstruction
 def save_reconstruction(path: Path, sfm: HopReconstruction) -> None:
     fields = {k: v for k, v in asdict(sfm).items() if k != "timings"}
-    np.savez_compressed(path, **fields, timings=json.dumps(sfm.timings))
+    save_npz_atomic(path, {**fields, "timings": json.dumps(sfm.timings)}, compressed=True)
 
 
 def load_reconstruction(path: Path) -> HopReconstruction:
@@ -156,7 +158,7 @@ def write_ply(path: Path, points: np.ndarray, colours: np.ndarray | None = None,
     properties = "".join(f"property {names[np.dtype(t)]} {n}\n" for n, t in fields)
     header = (f"ply\nformat binary_little_endian 1.0\ncomment RVS world frame (x east, y north, z up), metres\n"
               f"element vertex {len(points)}\n{properties}end_header\n")
-    with open(path, "wb") as handle:
+    with atomic_file(path) as handle:
         handle.write(header.encode("ascii"))
         handle.write(vertices.tobytes())
     return path

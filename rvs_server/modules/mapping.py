@@ -17,6 +17,7 @@ from pydantic import Field
 
 from ..config import CommandConfig, Range, SafeName, Settings
 from ..dispatch import Module
+from ..files import atomic_file
 from ..jobs import JobContext
 from ..mapping_ops import operations
 from ..protocol import BadRequest
@@ -277,7 +278,7 @@ def write_ply(path: Path, points: np.ndarray) -> None:
     points = np.ascontiguousarray(np.asarray(points, dtype=np.float32).reshape(-1, 3))
     header = (f"ply\nformat binary_little_endian 1.0\ncomment RVS world frame, metres\n"
               f"element vertex {len(points)}\nproperty float x\nproperty float y\nproperty float z\nend_header\n")
-    with open(path, "wb") as handle:
+    with atomic_file(path) as handle:
         handle.write(header.encode("ascii"))
         handle.write(points.astype("<f4").tobytes())
 

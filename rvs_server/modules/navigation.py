@@ -21,6 +21,7 @@ from scipy.ndimage import binary_fill_holes
 from drivers.sim.config import DriveError
 from ..config import CommandConfig, Point, Range, SafeName, Settings, TypeLabel
 from ..dispatch import Call, Module
+from ..files import atomic_file
 from ..jobs import JobContext
 from ..protocol import BadRequest, Timeout, WrongMode
 from ..rasters import read_geotiff, write_geotiff, write_png
@@ -412,7 +413,7 @@ def write_plan(product: Any, fused: MapLayers, plan: Any, drivable: Any, local: 
                                           "drivable": drivable.waypoints.tolist() if drivable is not None else [],
                                           "frame": "world: x east, y north, metres"},
                        "waypoints in world coordinates, and the drivable prefix")
-    with open(product.add("waypoints.csv", "waypoints: index, x, y, drivable"), "w", newline="") as handle:
+    with atomic_file(product.add("waypoints.csv", "waypoints: index, x, y, drivable"), "w", newline="") as handle:
         writer = csv.DictWriter(handle, fieldnames=["index", "x", "y", "drivable"])
         writer.writeheader()
         writer.writerows(rows)
