@@ -34,6 +34,7 @@ from pydantic import Field
 from scipy.ndimage import distance_transform_edt
 
 from ..config import CommandConfig, Point, SafeName
+from ..files import atomic_file, save_npy_atomic
 from ..jobs import JobContext
 from ..mapping_ops import operations
 from ..products import ProductPart
@@ -220,8 +221,8 @@ class Navigation:
         # A view that could not be aligned stays out of the map it would blur; it still serves as
         # this cycle's local map, which is consistent with where the rover believes it is.
         added = aligned["points"] if previous is None or aligned["accepted"] else np.empty((0, 3), np.float32)
-        np.save(part.add("map-cloud.npy", "the map's cloud after this cycle (world frame, 5 cm voxels; the next "
-                         "cycle aligns to it)"), merge_clouds(previous, added, MAP_CLOUD_VOXEL_M))
+        save_npy_atomic(part.add("map-cloud.npy", "the map's cloud after this cycle (world frame, 5 cm voxels; the "
+                                 "next cycle aligns to it)"), merge_clouds(previous, added, MAP_CLOUD_VOXEL_M))
         if aligned["accepted"]:  # until one is, odometry's uncertainty keeps growing
             state.moved = [0.0, 0.0]
         record = {"cycle": cycle, "pose_odometry": _pose_list(before), "pose_corrected": _pose_list(after),
@@ -504,8 +505,8 @@ class Navigation:
             truth = {"path": state.true_path, "contacts": state.contacts, "pose": list(testbed.rover.pose),
                      "step_height_m": self.mapping.truth_step}
         write_traverse(self.ctx, self.product, state, self.goal, outcome, message, fused, truth)
-        with open(self.product.add("path.csv", "the driven path: estimated (map-corrected) and dead reckoning"),
-                  "w", newline="") as handle:
+        with atomic_file(self.product.add("path.csv", "the driven path: estimated (map-corrected) and dead reckoning"),
+                         "w", newline="") as handle:
             writer = csv.writer(handle)
             writer.writerow(["index", "x", "y", "heading_deg", "odometry_x", "odometry_y", "odometry_heading_deg"])
             for i, (est, odo) in enumerate(zip(state.estimated_path, state.odometry_path)):
