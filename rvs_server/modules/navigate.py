@@ -149,6 +149,7 @@ class Navigation:
         if "traverse" in resume:
             self.state = Traverse(**resume["traverse"])
             self.server.pose_estimate = self.state.rover
+            self._simulated_rover_back()
         else:
             pose = self.server.pose_estimate
             self.state = Traverse(product=self.product.name, start=[pose.x, pose.y],
@@ -162,6 +163,16 @@ class Navigation:
         if mode == "simulated" and not self.ctx.devices.simulated:
             raise BadRequest("navigation.drive is simulated but the devices are real: set drive = \"gnc\"")
         return mode == "simulated" or (mode == "auto" and self.ctx.devices.simulated)
+
+    def _simulated_rover_back(self) -> None:
+        """A restarted server's simulated world starts with the rover at its start, where a real rover
+        stays where it stopped: put the simulated one back where the traverse's truth last saw it."""
+        if not (self.simulated and self.state.true_path):
+            return
+        rover = self.ctx.devices.testbed.rover
+        x, y, heading = self.state.true_path[-1][:3]
+        if not np.allclose(rover.pose, (x, y, heading)):
+            rover.place(x, y, heading)
 
     # ---------------------------------------------------------------------------------- the loop
     def run(self) -> dict[str, Any]:
