@@ -132,7 +132,18 @@ def acquire_tof(step: StepContext, params: AcquireTofParams, views: dict) -> dic
                 "camera_to_world": camera_to_world(pose, mount, math.radians(measured[0]), math.radians(measured[1])),
                 "true_camera_to_world": _true_pose(camera)}
 
-    return {"sensor": "tof", "views": each_view(step, views, take)}
+    taken = each_view(step, views, take)
+    last = step.load_partial(f"exposure{len(taken) - 1:03d}") if taken else None
+    return {"sensor": "tof", "views": taken, "integration_time": last["integration_time"] if last else -1}
+
+
+def leave_camera_as_acquired(job: Any, acquired: dict) -> None:
+    """The camera's exposure as the acquisition's last view left it, also when that acquisition was
+    loaded from a checkpoint after a restart (which reopened the camera at its configured exposure):
+    the next panorama's first view then starts from the same exposure as in an uninterrupted run."""
+    exposure = int(acquired.get("integration_time", -1))
+    if acquired.get("sensor") == "tof" and exposure >= 0:
+        job.devices.tof.require().set_integration_time(exposure)
 
 
 def _repeatable(camera: Any, index: int, exposure: dict | None) -> None:

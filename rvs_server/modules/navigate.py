@@ -36,7 +36,7 @@ from scipy.ndimage import distance_transform_edt
 from ..config import CommandConfig, Point, SafeName
 from ..files import atomic_file, save_npy_atomic
 from ..jobs import JobContext
-from ..mapping_ops import operations
+from ..mapping_ops import leave_camera_as_acquired, operations
 from ..products import ProductPart
 from ..protocol import BadRequest
 from ..rasters import read_geotiff
@@ -221,6 +221,7 @@ class Navigation:
         folder = working / f"cycle-{cycle:02d}"
         results, provenance = run_workflow(workflow, operations, params, CycleJob(self.ctx, cycle, state.best_percent),
                                            folder)
+        leave_camera_as_acquired(self.ctx, results.get("acquired") or {})
         aligned = results["aligned"]
         after = RoverPose.from_matrix(np.asarray(aligned["correction"]) @ before.to_world())
         state.pose = [after.x, after.y, after.z, after.heading, after.roll, after.pitch]
