@@ -32,6 +32,7 @@ from .calibration import Calibration, CalibrationConfig, build_calibration
 from .config import ConfigError, Settings, load_model, read_toml, validate_section
 from .devices import Devices, DevicesConfig
 from .dispatch import CommandSpec, Dispatcher, Module, Registry, Session
+from .files import remove_stale_temporaries
 from .jobs import JobCounter, RecoveryStore
 from .products import Products
 from .toolbox.geometry import RoverPose
@@ -201,6 +202,7 @@ class Server:
         self._shutdown: asyncio.Future | None = None
         self.stopping = False  # a shutdown was asked for: start-up goes no further, jobs are refused
         self.ready = False  # the ports are open and every device started
+        remove_stale_temporaries(self.data_dir)  # writes a kill cut short (rvs_server/files.py)
 
     # -- configuration --------------------------------------------------------------------------
 

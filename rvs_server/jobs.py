@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 import shutil
 import threading
 import time
@@ -21,7 +20,7 @@ from dataclasses import MISSING, dataclass, field, fields
 from pathlib import Path
 from typing import Any, Callable
 
-from .files import write_json_atomic
+from .files import write_json_atomic, write_text_atomic
 
 
 log = logging.getLogger("rvs.jobs")
@@ -187,9 +186,7 @@ class JobCounter:
             except (OSError, ValueError):
                 current = 0
             current += 1
-            tmp = self.path.with_suffix(".tmp")
-            tmp.write_text(f"{current}\n")
-            os.replace(tmp, self.path)
+            write_text_atomic(self.path, f"{current}\n")
             return str(current)
 
 

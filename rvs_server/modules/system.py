@@ -11,6 +11,7 @@ from pydantic import Field
 from .. import __version__
 from ..config import CommandConfig, describe_allowed, describe_default, option_name, type_label
 from ..dispatch import Call, Module, Request
+from ..files import atomic_path
 from ..jobs import UnreadableRecoverySet
 from ..protocol import (EVENT_TOPICS, BadRequest, DeviceError, RvsError, Timeout, Unauthorized, WrongMode,
                         parse_line)
@@ -229,7 +230,8 @@ def logbook(call: Call, cfg: Any) -> dict[str, Any]:
         for handler in server.log_handlers:
             handler.flush()
         target = target_dir / server.log_path.name
-        shutil.copyfile(server.log_path, target)
+        with atomic_path(target) as partial:  # a reader of the shared folder never sees half a log
+            shutil.copyfile(server.log_path, partial)
     except OSError as exc:
         raise RvsError(f"cannot copy the log to {target_dir}: {exc.strerror}", reason="internal") from None
     return {"path": str(target)}
