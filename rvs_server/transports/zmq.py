@@ -21,6 +21,10 @@ from ..protocol import BadRequest, RvsError, TAG_RE, parse_line
 log = logging.getLogger("rvs.zmq")
 
 PROGRESS_CODE = 102  # like HTTP's "processing": the request is still running
+# ZeroMQ never tells a ROUTER that a peer has gone, and every new DEALER socket is a new identity: the
+# peers heard from most recently are remembered (session, request count), the oldest beyond this forgotten,
+# so a client that reconnects all day does not make the server grow without bound.
+MAX_PEERS = 4096
 
 
 def _json(value: Any) -> Any:
@@ -91,10 +95,14 @@ class ZmqTransport:
 
     def _request(self, envelope: list[bytes], payload: bytes) -> None:
         identity = envelope[0]
-        session = self.sessions.get(identity)
+        session = self.sessions.pop(identity, None)
         if session is None:
             session = Session(name=f"zmq {identity.hex()}")
-            self.sessions[identity] = session
+        self.sessions[identity] = session  # a dict keeps insertion order: the most recent peer last
+        while len(self.sessions) > MAX_PEERS:
+            oldest = next(iter(self.sessions))
+            del self.sessions[oldest]
+            self.counters.pop(oldest, None)
         self.counters[identity] = self.counters.get(identity, 0) + 1
         request_id: str | None = None
         try:
