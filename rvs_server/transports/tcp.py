@@ -20,6 +20,13 @@ log = logging.getLogger("rvs.tcp")
 IAC, SB, SE = 255, 250, 240
 WILL, WONT, DO, DONT = 251, 252, 253, 254
 
+# A client that stops reading (a telnet window stopped with Ctrl-S, a hung program) must not make the
+# server keep what it cannot send without bound. Events to it are dropped once this much is unsent ...
+EVENT_BUFFER_LIMIT = 1 << 20
+# ... and its own commands are not read on while this much of their replies is unsent (backpressure;
+# no reply is ever dropped). Its other lines wait in the socket until it reads again.
+REPLY_BUFFER_LIMIT = 4 << 20
+
 
 class TelnetFilter:
     """Removes telnet IAC sequences from a byte stream, across chunk boundaries."""
@@ -84,11 +91,13 @@ class TextConnection(asyncio.Protocol):
         self.discarding: bytes | None = None  # the start of an over-long line being thrown away
         self.count = 0
         self.session: Session | None = None
+        self.events_dropped = 0  # since the client last kept up
 
     # -- asyncio.Protocol ----------------------------------------------------------------------
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         self.transport = transport  # type: ignore[assignment]
+        self.transport.set_write_buffer_limits(high=REPLY_BUFFER_LIMIT)
         peer = transport.get_extra_info("peername")
         name = f"tcp {peer[0]}:{peer[1]}" if isinstance(peer, tuple) else "tcp"
         self.session = Session(name=name, send_event=self.send_event, close=self.close)
@@ -101,6 +110,15 @@ class TextConnection(asyncio.Protocol):
             self.server.sessions.discard(self.session)
             log.info("%s disconnected", self.session.name)
         self.transport = None
+
+    def pause_writing(self) -> None:
+        """Replies pile up unsent: read no more of this client's commands until they are sent."""
+        if self.transport is not None and not self.transport.is_closing():
+            self.transport.pause_reading()
+
+    def resume_writing(self) -> None:
+        if self.transport is not None and not self.transport.is_closing():
+            self.transport.resume_reading()
 
     def data_received(self, data: bytes) -> None:
         self.buffer += self.telnet.feed(data)
@@ -159,6 +177,15 @@ class TextConnection(asyncio.Protocol):
             self.transport.write((line + LINE_END).encode("utf-8"))
 
     def send_event(self, topic: str, data: Mapping[str, Any]) -> None:
+        name = self.session.name if self.session else "tcp"
+        if self.transport is not None and self.transport.get_write_buffer_size() > EVENT_BUFFER_LIMIT:
+            if not self.events_dropped:
+                log.warning("%s does not read what it is sent: its events are dropped until it does", name)
+            self.events_dropped += 1
+            return
+        if self.events_dropped:
+            log.warning("%s reads again: %d events were dropped", name, self.events_dropped)
+            self.events_dropped = 0
         self.send_line(format_event(topic, data))
 
     def close(self) -> None:
