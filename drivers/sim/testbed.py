@@ -18,6 +18,7 @@ import numpy as np
 
 from .clock import SimClock
 from .config import WorldConfig
+from .faults import InjectedFaults
 from .motion import DriveError, Motion, execute
 from .rover import Rover, RoverConfig
 from .world import World
@@ -43,6 +44,8 @@ class SimulatedTestbed:
         self._build_error: BaseException | None = None
         # Set by the PTU device: the unit's true (pan, tilt) in degrees right now.
         self.ptu_angles: Callable[[], tuple[float, float]] = lambda: (0.0, 0.0)
+        # Broken hardware switched on by `sim-fault`; every emulator made on this bed asks its switch.
+        self.faults = InjectedFaults()
 
     # -- the world, built once ------------------------------------------------------------------
 
