@@ -28,6 +28,7 @@ import serial
 from drivers.errors import DeviceFault, DeviceTimeout
 from drivers.serial_emulation import PtyServer, TcpServer
 from drivers.sim.clock import SimClock
+from drivers.sim.faults import FaultSwitch
 
 log = logging.getLogger(__name__)
 
@@ -97,11 +98,12 @@ class PtuLimitHit(PtuError):
 
 
 class PtuTimeout(PtuError, DeviceTimeout):
-    """Something did not finish in time: a reply did not arrive, or a move did not end."""
+    """A move did not end within its time limit (the unit answers, it is still moving)."""
 
 
 class PtuNotResponding(PtuError):
-    """The unit cannot be reached or gives no valid answer (port gone, silent, garbage)."""
+    """The unit cannot be reached or gives no valid answer (port gone, silent for the whole read
+    timeout, garbage)."""
 
 
 @dataclass(frozen=True)
@@ -185,6 +187,15 @@ class PtuD46:
         self._limits: PtuLimits | None = None
         self._position_limits: dict[str, tuple[int, int]] = {}
         self._speed_limits: dict[str, tuple[int, int]] = {}
+        self._not_answering: str | None = None
+        self._silences = 0   # exchanges left unanswered so far
+        self._silence_detail = ""
+
+    @property
+    def not_answering(self) -> str | None:
+        """Why the last exchange got no reply, or None once the unit answers again. Read without the
+        line's lock, so a status reader learns of a silent unit while a job waits on it."""
+        return self._not_answering
 
     @property
     def _label(self) -> str:
@@ -386,23 +397,39 @@ class PtuD46:
         The unit queues input and answers in order, so pipelining saves round trips. If a command
         fails, the remaining replies are still read, to keep the stream in step, and the first
         failure is raised."""
+        silences = self._silences
         with self._lock:
-            self._require_open()
-            self._drain_stale_input()
-            wire = "".join(f"{command} " for command in commands)
-            self._write(wire.encode("ascii"), sent=wire)
-            deadline = time.monotonic() + self._reply_timeout_s + self._clock.to_wall(wait_s)
-            payloads: list[str] = []
-            first_failure: PtuCommandError | None = None
-            for command in commands:
-                try:
-                    payloads.append(self._read_reply(command, deadline, limit_notices_expected))
-                except PtuCommandError as exc:
-                    first_failure = first_failure or exc
-                    payloads.append("")
-            if first_failure is not None:
-                raise first_failure
+            if self._silences != silences:
+                # The unit left another exchange unanswered while this one waited for the line:
+                # waiting out the same timeout again would only double the time to report it.
+                raise PtuNotResponding(f"{self._silence_detail} (the exchange before this one)", **self._who,
+                                       sent=" ".join(commands))
+            try:
+                payloads = self._exchange_locked(commands, wait_s, limit_notices_expected)
+            except PtuNotResponding as exc:
+                self._not_answering, self._silence_detail = str(exc), exc.detail
+                self._silences += 1
+                raise
+            self._not_answering = None
             return payloads
+
+    def _exchange_locked(self, commands: list[str], wait_s: float, limit_notices_expected: bool) -> list[str]:
+        self._require_open()
+        self._drain_stale_input()
+        wire = "".join(f"{command} " for command in commands)
+        self._write(wire.encode("ascii"), sent=wire)
+        deadline = time.monotonic() + self._reply_timeout_s + self._clock.to_wall(wait_s)
+        payloads: list[str] = []
+        first_failure: PtuCommandError | None = None
+        for command in commands:
+            try:
+                payloads.append(self._read_reply(command, deadline, limit_notices_expected))
+            except PtuCommandError as exc:
+                first_failure = first_failure or exc
+                payloads.append("")
+        if first_failure is not None:
+            raise first_failure
+        return payloads
 
     def _read_reply(self, command: str, deadline: float, limit_notices_expected: bool) -> str:
         while True:
@@ -434,8 +461,10 @@ class PtuD46:
                 partial = bytes(self._rx).decode("ascii", errors="replace")
                 self._rx.clear()
                 self._discard_input()
-                raise PtuTimeout("no complete reply within the read timeout", **self._who,
-                                 sent=command, reply=partial or None)
+                # A unit that says nothing for the whole read timeout is not answering: a fault of
+                # the device, not a step over its time limit.
+                raise PtuNotResponding(f"stopped answering: no complete reply within {self._reply_timeout_s:g} s",
+                                       **self._who, sent=command, reply=partial or None)
             self._rx += self._read_available(command)
 
     def _read_available(self, command: str) -> bytes:
@@ -452,8 +481,8 @@ class PtuD46:
         try:
             serial_port.write(data)
         except serial.SerialTimeoutException as exc:
-            raise PtuTimeout("the unit does not take input (write timed out)", **self._who,
-                             sent=sent) from exc
+            raise PtuNotResponding("stopped answering: the unit does not take input (write timed out)",
+                                   **self._who, sent=sent) from exc
         except (serial.SerialException, OSError) as exc:
             raise PtuNotResponding(f"serial line failed while writing: {exc}",
                                    **self._who, sent=sent) from exc
@@ -768,14 +797,19 @@ class PtuEmulator:
 
     Ground truth for tests: true_angles_deg() and is_moving(). Serve it on a line with serve_pty()
     or serve_tcp(). Thread-safe; `clock` needs now() (and to_wall() when served).
+
+    `fault` (drivers/sim/faults.py) counts every command the unit reads; once it trips the unit
+    hangs: it reads and answers nothing until the fault is cleared.
     """
 
     def __init__(self, clock, *, pan_limits: tuple[int, int] = D46_PAN_LIMITS,
                  tilt_limits: tuple[int, int] = D46_TILT_LIMITS, hard_stop_margin: int = 200,
                  resolution_arcsec: float = D46_RESOLUTION_ARCSEC, max_speed: int = 2902,
                  min_speed: int = 31, echo: bool = True, verbose: bool = True,
-                 line_end: bytes = b"\r\n", reply_prefix: bytes = b"", version: str = D46_VERSION):
+                 line_end: bytes = b"\r\n", reply_prefix: bytes = b"", version: str = D46_VERSION,
+                 fault: FaultSwitch | None = None):
         self._clock = clock
+        self._fault = fault or FaultSwitch("ptu")   # each command the unit reads is one request
         self._lock = threading.RLock()
         self._factory = AxisSettings(upper_speed=max_speed, lower_speed=min_speed)
         self._max_speed = max_speed
@@ -807,13 +841,25 @@ class PtuEmulator:
 
     def feed(self, data: bytes) -> bytes:
         with self._lock:
+            if self._fault.broken:
+                return self._hung(self._clock.now())
             room = _MAX_BACKLOG - len(self._backlog)
             self._backlog += data[:max(room, 0)]   # a full input buffer drops bytes, like a UART
             return self._advance(self._clock.now())
 
     def poll(self) -> bytes:
         with self._lock:
+            if self._fault.broken:
+                return self._hung(self._clock.now())
             return self._advance(self._clock.now())
+
+    def _hung(self, now: float) -> bytes:
+        """A hung controller (injected fault): it reads nothing and says nothing, not even what it
+        had queued; the axes still end the move they were making."""
+        self._backlog.clear()
+        self._token.clear()
+        self._due_output(now)
+        return b""
 
     def next_event_time(self) -> float | None:
         """Simulated time at which poll() may next have output."""
@@ -868,6 +914,9 @@ class PtuEmulator:
             if self.echo:
                 out.append(byte)
             if byte in _DELIMITERS:
+                if (self._token or self._token_overflow) and not self._fault.answers():
+                    self._hung(now)   # it hangs on this command: no reply to it or to any later one
+                    return bytes(out)
                 if self._token or self._token_overflow:
                     out += self._execute(bytes(self._token), now)
                 self._token.clear()

@@ -29,6 +29,7 @@ from drivers.ptu import (
 )
 from drivers.serial_emulation import make_raw
 from drivers.sim.clock import SimClock
+from drivers.sim.faults import FaultSwitch
 
 CLOCK_SPEED = 50.0                       # a 3 s move takes 60 ms of wall time
 RES_DEG = D46_RESOLUTION_ARCSEC / 3600   # degrees per position
@@ -423,21 +424,39 @@ def test_stopped_emulator_gives_an_error_not_a_hang(emulator, server, clock):
     driver.close()
 
 
-def test_silent_line_times_out():
+def test_a_silent_line_is_a_unit_not_answering():
     master, slave = pty.openpty()
     make_raw(slave)
     try:
         driver = PtuD46(os.ttyname(slave), name="mute", reply_timeout_s=0.2)
         started = time.monotonic()
-        with pytest.raises(PtuTimeout, match="mute") as timed_out:
+        with pytest.raises(PtuNotResponding, match="mute on .*: stopped answering") as timed_out:
             driver.open()
-        assert timed_out.value.sent == "FT"
+        assert timed_out.value.sent == "FT" and not isinstance(timed_out.value, DeviceTimeout)
+        assert driver.not_answering and "stopped answering" in driver.not_answering
         assert time.monotonic() - started < 2.0
         with pytest.raises(PtuNotResponding):
             driver.check()   # open() failed, so the line is closed
     finally:
         os.close(master)
         os.close(slave)
+
+
+def test_an_injected_fault_hangs_the_unit_mid_move_until_cleared(clock):
+    fault = FaultSwitch("ptu")
+    unit = PtuEmulator(clock, fault=fault)
+    with unit.serve_pty() as served, PtuD46(served.path, name="test-ptu", clock=clock,
+                                            reply_timeout_s=0.3) as driver:
+        driver.move_to(90.0, 0.0, speed_deg_s=3.0)   # 30 s simulated, 0.6 s of wall time
+        fault.arm(after=1)                       # PP answered, TP and everything after it not
+        with pytest.raises(PtuNotResponding, match="test-ptu on .*: stopped answering") as silent:
+            driver.position()
+        assert silent.value.reply is None and driver.not_answering
+        assert fault.state().tripped and fault.state().unanswered >= 1
+        assert unit.is_moving()                  # the axes go on with the move they were making
+        fault.clear()
+        pan, _ = driver.position()               # the stale request was dropped: the line is usable
+        assert 0.0 < pan < 90.0 and driver.not_answering is None
 
 
 def test_missing_device_is_not_responding():
