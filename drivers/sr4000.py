@@ -62,6 +62,11 @@ class Sr4000Timeout(Sr4000Error, DeviceTimeout):
     """No frame within the configured timeout (e.g. a hardware trigger that never came)."""
 
 
+class Sr4000NotAnswering(Sr4000Error):
+    """SR_Acquire gave no frame: the camera stopped answering (unplugged, hung, or past its timeout).
+    A fault of the device (ERR 503), not a step over a time limit."""
+
+
 class Sr4000LibraryMissing(Sr4000Error):
     """libmesasr.so cannot be loaded, or lacks a function we need."""
 

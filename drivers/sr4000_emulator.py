@@ -40,6 +40,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from drivers.sim.clock import SimClock
+from drivers.sim.faults import FaultSwitch
 from drivers.sim.render import PinholeCamera, RenderedView, render
 from drivers.sim.world import World
 from drivers.sr4000 import (
@@ -51,6 +52,8 @@ from drivers.sr4000 import (
     ModulationFrequency,
     Sr4000,
     Sr4000Error,
+    Sr4000NotAnswering,
+    Sr4000NotFound,
     Sr4000Settings,
     Sr4000Timeout,
     TofFrame,
@@ -465,6 +468,9 @@ class Sr4000Emulator(Sr4000):
     seed         noise and edge-placement streams; same seed + poses + settings = same frames
     model        physical constants (Sr4000Model)
 
+    fault        its injected fault (drivers/sim/faults.py), one request per frame: once tripped
+                 acquire() gives no frame (SR_Acquire fails after timeout_ms) and open() finds no camera
+
     With AM_HW_TRIGGER set, acquire() waits for hardware_trigger() (at most timeout_ms, simulated).
     After each acquire(), `last_view` (the RenderedView), `last_pose` and `last_images` (with the
     model's intermediate truth) hold what the frame was made from.
@@ -473,8 +479,9 @@ class Sr4000Emulator(Sr4000):
     def __init__(self, world: World, camera_pose: Callable[[], np.ndarray], clock: SimClock, *,
                  intrinsics: PinholeCamera = MRPT_INTRINSICS, seed: int = 0,
                  settings: Sr4000Settings | None = None, model: Sr4000Model | None = None,
-                 name: str = "sr4000-emulator", serial: int = EMULATED_SERIAL):
+                 name: str = "sr4000-emulator", serial: int = EMULATED_SERIAL, fault: FaultSwitch | None = None):
         super().__init__(name, settings)
+        self._fault = fault or FaultSwitch("tof")   # each frame asked for is one request
         self.world, self.clock, self.intrinsics, self.seed = world, clock, intrinsics, seed
         self.model = model or Sr4000Model()
         self.rows, self.cols = intrinsics.height, intrinsics.width
@@ -496,6 +503,9 @@ class Sr4000Emulator(Sr4000):
 
     # -- lifecycle -----------------------------------------------------------------------------
     def _open(self) -> None:
+        if self._fault.broken:   # a hung camera does not enumerate, as SR_OpenUSB then finds none
+            raise Sr4000NotFound("no SR4000 answered (emulated camera with an injected fault)", device=self.name,
+                                 call="SR_OpenUSB", returned=0)
         self.serial, self.version = self._serial, EMULATED_VERSION
         self._trigger.clear()
 
@@ -513,6 +523,8 @@ class Sr4000Emulator(Sr4000):
         exposure = Exposure(registers.integration_time, registers.modulation_frequency, registers.mode,
                             registers.amplitude_threshold)
         self._wait_for_trigger(exposure.mode, registers.timeout_ms)
+        if not self._fault.answers():
+            self._no_frame(registers.timeout_ms)
         started = self.clock.now()
         frame_time = frame_time_s(exposure.integration_time, self.model)
         self.clock.sleep(frame_time / 2)
@@ -532,6 +544,13 @@ class Sr4000Emulator(Sr4000):
                         x=images.x, y=images.y, z=images.z, timestamp=timestamp,
                         modulation_frequency=exposure.modulation_frequency,
                         integration_time=exposure.integration_time, sequence=self._sequence)
+
+    def _no_frame(self, timeout_ms: int) -> None:
+        """A camera that stopped answering: SR_Acquire waits out its timeout and returns -1, which
+        the real backend reports the same way (MesaSr4000._acquire)."""
+        self.clock.sleep(timeout_ms / 1000.0)
+        raise Sr4000NotAnswering(f"acquisition failed: stopped answering (no frame within {timeout_ms} ms)",
+                                 device=self.name, call="SR_Acquire", returned=-1)
 
     def _true_pose(self) -> np.ndarray:
         pose = np.asarray(self._camera_pose(), dtype=np.float64)

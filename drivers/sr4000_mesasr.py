@@ -24,6 +24,7 @@ from drivers.sr4000 import (
     Sr4000,
     Sr4000Error,
     Sr4000LibraryMissing,
+    Sr4000NotAnswering,
     Sr4000NotFound,
     Sr4000Settings,
     TofFrame,
@@ -161,8 +162,9 @@ class MesaSr4000(Sr4000):
         transferred = self._lib.SR_Acquire(self._cam)
         finished = self.clock.now()
         if transferred < 0:
-            raise Sr4000Error("acquisition failed (camera gone or timed out?)", device=self.name,
-                              call="SR_Acquire", returned=transferred)
+            raise Sr4000NotAnswering(f"acquisition failed: stopped answering (no frame within "
+                                     f"{self._settings.timeout_ms} ms, or the camera is gone)", device=self.name,
+                                     call="SR_Acquire", returned=transferred)
         images = self._images()
         if IT_DISTANCE not in images or IT_AMPLITUDE not in images:
             raise Sr4000Error(f"image list lacks distance or amplitude (types {sorted(images)})",

@@ -17,6 +17,7 @@ import pytest
 from drivers.errors import DeviceFault, DeviceTimeout
 from drivers.sim.clock import SimClock
 from drivers.sim.render import render
+from drivers.sim.faults import FaultSwitch
 from drivers.sim.world import World, WorldConfig
 from drivers.sr4000 import (
     AMPLITUDE_SATURATED,
@@ -26,6 +27,7 @@ from drivers.sr4000 import (
     Sr4000,
     Sr4000Error,
     Sr4000LibraryMissing,
+    Sr4000NotAnswering,
     Sr4000NotFound,
     Sr4000Settings,
     Sr4000SettingsError,
@@ -262,8 +264,10 @@ def test_no_camera_answering_is_a_precise_device_fault(fake, result):
 def test_acquisition_failure_names_the_call_and_is_kept_in_the_status(fake):
     with MesaSr4000(library=str(fake.path), name="tof-test") as camera:
         fake.fail_acquire(-5)
-        with pytest.raises(Sr4000Error, match=r"tof-test: acquisition failed .*SR_Acquire returned -5"):
+        with pytest.raises(Sr4000NotAnswering, match=r"tof-test: acquisition failed: stopped answering .*"
+                                                      r"SR_Acquire returned -5") as caught:
             camera.acquire()
+        assert not isinstance(caught.value, DeviceTimeout)   # a silent camera is a fault, ERR 503
         status = camera.status()
         assert status.state == "idle" and "SR_Acquire returned -5" in status.last_error
 
@@ -562,6 +566,26 @@ def test_hardware_trigger_waits_and_times_out(world, mast):
     assert isinstance(caught.value, DeviceTimeout) and caught.value.device == "sr4000-emulator"
     threading.Timer(0.005, camera.hardware_trigger).start()
     assert camera.acquire().sequence == 1
+
+
+def test_an_injected_fault_silences_the_camera_until_cleared(world, mast):
+    fault = FaultSwitch("tof")
+    camera = Sr4000Emulator(world, lambda: mast, SimClock(FAST_CLOCK), seed=3, fault=fault,
+                            settings=Sr4000Settings.checked(timeout_ms=400)).open()
+    fault.arm(after=1)
+    camera.acquire()                                    # the one frame it still gives
+    started = camera.clock.now()
+    with pytest.raises(Sr4000NotAnswering, match=r"sr4000-emulator: acquisition failed: stopped answering "
+                                                  r"\(no frame within 400 ms\) \(SR_Acquire returned -1\)"):
+        camera.acquire()
+    assert camera.clock.now() - started >= 0.4          # SR_Acquire waited out its timeout
+    assert "stopped answering" in camera.status().last_error
+    camera.close()
+    with pytest.raises(Sr4000NotFound, match="no SR4000 answered"):
+        camera.open()                                   # a hung camera does not enumerate
+    fault.clear()
+    camera.open()
+    assert camera.acquire().sequence == 2 and camera.status().last_error is None
 
 
 def test_status_is_readable_while_a_frame_is_acquired(world, mast):
