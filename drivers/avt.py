@@ -52,6 +52,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from drivers.errors import DeviceFault, DeviceTimeout
 from drivers.sim.clock import SimClock
+from drivers.sim.faults import FaultSwitch
 from drivers.sim.render import PinholeCamera, render
 from drivers.sim.world import World
 from drivers.trigger import EmulatedTrigger, TriggerBox, TriggerStatus
@@ -352,6 +353,10 @@ class Camera(ABC):
         self._set_state("error", detail)
         return CameraError(detail, device=self.label)
 
+    def not_answering(self, detail: str) -> CameraError:
+        """The pair found this camera silent where another answered: a fault of the camera."""
+        return self._fault(f"stopped answering: {detail}")
+
     def _timeout(self, detail: str) -> CameraTimeout:
         self._set_state("idle", detail)
         return CameraTimeout(detail, device=self.label)
@@ -527,19 +532,38 @@ class StereoCameras:
             return (which,)
         raise ValueError(f"grab: which must be left, right or both, got {which!r}")
 
-    @staticmethod
-    def _collect(cameras: dict[str, Camera], pulse_time: float, timeout_s: float) -> dict[str, Frame]:
+    def _collect(self, cameras: dict[str, Camera], pulse_time: float, timeout_s: float) -> dict[str, Frame]:
         """Wait for every camera, even after one failed, so no frame is left in flight."""
         frames: dict[str, Frame] = {}
-        first_error: BaseException | None = None
+        errors: dict[str, DeviceFault] = {}
         for role, camera in cameras.items():
             try:
                 frames[role] = replace(camera.wait_frame(timeout_s), trigger_time_s=pulse_time)
             except DeviceFault as exc:
-                first_error = first_error or exc
-        if first_error is not None:
-            raise first_error
+                errors[role] = exc
+        if errors:
+            raise self._culprit(cameras, frames, errors, pulse_time, timeout_s)
         return frames
+
+    def _culprit(self, cameras: dict[str, Camera], frames: dict[str, Frame], errors: dict[str, DeviceFault],
+                 pulse_time: float, timeout_s: float) -> DeviceFault:
+        """Who failed a grab. A camera's own error names it. A camera can only time out alone, so
+        the pair judges silence from the others: silent while another answered the same pulse, the
+        camera stopped answering; every camera silent, the pulse never reached them, and the
+        trigger box is at fault."""
+        silent = [role for role, exc in errors.items() if isinstance(exc, CameraTimeout)]
+        reported = [exc for role, exc in errors.items() if role not in silent]
+        if reported:
+            return reported[0]
+        waited = f"waited {timeout_s:g} s"
+        if frames:
+            answered = " and ".join(f"camera {role}" for role in frames)
+            return cameras[silent[0]].not_answering(f"no frame for the trigger pulse at {pulse_time:.3f} s that "
+                                                    f"{answered} answered ({waited})")
+        if len(silent) > 1:
+            return self.trigger.unseen(pulse_time, f"{' and '.join(silent)} {waited}")
+        return cameras[silent[0]].not_answering(f"no frame for the trigger pulse at {pulse_time:.3f} s ({waited}); "
+                                                "a grab of both cameras tells the camera from the trigger box")
 
 
 # --------------------------------------------------------------------------------------------
@@ -585,15 +609,17 @@ class EmulatedCamera(Camera):
     `intrinsics` maps each resolution mode to its PinholeCamera (see intrinsics_per_mode). The
     camera connects itself to `trigger` (the cable); on a pulse after arm() it notes the instant,
     the pose and the sun at that instant, and renders in a thread of its own. `seed` makes the
-    sensor noise repeatable (it is mixed with the camera's name and the frame number).
+    sensor noise repeatable (it is mixed with the camera's name and the frame number). `fault`
+    (drivers/sim/faults.py) counts the frames asked of it; once tripped the camera ignores pulses.
     """
 
     trigger_mode = "hardware (emulated)"
 
     def __init__(self, name: str, world: World, pose: Pose, intrinsics: Mapping[str, PinholeCamera],
                  clock: SimClock, trigger: EmulatedTrigger, seed: int = 0, *,
-                 default_settings: CameraSettings | None = None):
+                 default_settings: CameraSettings | None = None, fault: FaultSwitch | None = None):
         super().__init__(name, clock=clock, default_settings=default_settings)
+        self._fault_switch = fault or FaultSwitch(name)   # each frame triggered while armed is one request
         missing = [mode for mode in RESOLUTION_MODES if mode not in intrinsics]
         if missing:
             raise ValueError(f"{self.label}: intrinsics lack resolution modes {', '.join(missing)}")
@@ -632,10 +658,16 @@ class EmulatedCamera(Camera):
             self._settings = settings   # a frame already triggered keeps the settings it was exposed with
 
     def reset(self) -> None:
+        """Re-enumerate: default settings, frame numbers from 1 again. A hung camera (injected
+        fault) does not come back, as a real one is then not found after its reset."""
         self._require_open()
         self.disarm()
         self._set_state("idle")
         self._clock.sleep(EMULATED_RESET_S)
+        if self._fault_switch.broken:
+            raise self.not_answering(f"did not come back within {EMULATED_RESET_S:g} s of a reset")
+        with self._status_lock:
+            self._frames = 0
         self.reinit()
 
     # -- acquisition ----------------------------------------------------------------------------
@@ -666,6 +698,8 @@ class EmulatedCamera(Camera):
         with self._lock:
             if not self._armed or self._exposure is None:
                 return      # not acquiring: the camera ignores the pulse
+            if not self._fault_switch.answers():
+                return      # hung (injected fault): no exposure, no frame, no word
             self._armed = False
             exposure = self._exposure
             exposure.trigger_time = at
@@ -772,13 +806,17 @@ def emulated_stereo_pair(world: World, left_pose: Pose, right_pose: Pose, *, clo
                          trigger: EmulatedTrigger | None = None,
                          sensor: PinholeCamera = PIKE_F210B_SENSOR, seed: int = 0,
                          default_settings: CameraSettings | None = None,
-                         ids: tuple[str, str] = ("emu-left", "emu-right")) -> StereoCameras:
-    """Two emulated cameras on one emulated trigger box, left found first."""
-    trigger = trigger or EmulatedTrigger(clock)
+                         ids: tuple[str, str] = ("emu-left", "emu-right"),
+                         faults: Mapping[str, FaultSwitch] | None = None) -> StereoCameras:
+    """Two emulated cameras on one emulated trigger box, left found first. `faults` holds the
+    switches of "camera-left", "camera-right" (the cameras on the left and right mounts) and
+    "trigger" (the emulated box made here), as the simulated test bed keeps them."""
+    faults = faults or {}
+    trigger = trigger or EmulatedTrigger(clock, fault=faults.get("trigger"))
     intrinsics = intrinsics_per_mode(sensor)
     cameras = [EmulatedCamera(camera_id, world, pose, intrinsics, clock, trigger, seed,
-                              default_settings=default_settings)
-               for camera_id, pose in zip(ids, (left_pose, right_pose))]
+                              default_settings=default_settings, fault=faults.get(mount))
+               for camera_id, pose, mount in zip(ids, (left_pose, right_pose), ("camera-left", "camera-right"))]
     return StereoCameras(cameras, trigger, default_settings)
 
 
@@ -913,9 +951,9 @@ class VimbaCamera(Camera):
                 self.open()
                 return
             except CameraError as exc:
-                if time.monotonic() >= deadline:
-                    raise CameraTimeout(f"did not come back within {self._reset_timeout_s:g} s of a reset: "
-                                        f"{exc.detail}", device=self.label) from exc
+                if time.monotonic() >= deadline:  # a camera that is not found is not answering: ERR 503
+                    raise self.not_answering(f"did not come back within {self._reset_timeout_s:g} s of a "
+                                             f"reset: {exc.detail}") from exc
 
     # -- acquisition ----------------------------------------------------------------------------
 

@@ -25,6 +25,7 @@ from dataclasses import dataclass
 
 from drivers.errors import DeviceFault
 from drivers.sim.clock import SimClock
+from drivers.sim.faults import FaultSwitch
 
 log = logging.getLogger(__name__)
 
@@ -91,6 +92,13 @@ class TriggerBox(ABC):
 
     def __exit__(self, *exc_info) -> None:
         self.close()
+
+    def unseen(self, at: float, detail: str) -> TriggerError:
+        """The cameras report that the pulse sent at `at` reached none of them: the box (or its
+        cable) failed, although the PC's side of it worked. Recorded for status() like any fault."""
+        with self._lock:
+            return self._fault(f"stopped answering: the trigger pulse at {at:.3f} s reached no camera ({detail}); "
+                               "the trigger box or its cable is not working")
 
     def _fault(self, detail: str) -> TriggerError:
         """Record a fault for status() and build the error to raise (callers hold the lock)."""
@@ -223,11 +231,14 @@ class EmulatedTrigger(TriggerBox):
     Cameras `connect()` a trigger input, a callable taking the simulated time of the pulse. pulse()
     calls every input with the same instant, so frames triggered together are exposed together;
     inputs must return quickly (the emulated camera only notes the instant and renders elsewhere).
+    `fault` (drivers/sim/faults.py) counts pulses; once tripped, pulses reach no camera.
     """
 
-    def __init__(self, clock: SimClock | None = None, name: str = "trigger (emulated)"):
+    def __init__(self, clock: SimClock | None = None, name: str = "trigger (emulated)",
+                 fault: FaultSwitch | None = None):
         super().__init__(name, clock)
         self._inputs: list[TriggerInput] = []
+        self._fault_switch = fault or FaultSwitch("trigger")   # each pulse is one request
 
     def connect(self, trigger_input: TriggerInput) -> None:
         with self._lock:
@@ -251,7 +262,8 @@ class EmulatedTrigger(TriggerBox):
             if not self._is_open:
                 raise self._fault("not open: call open() first")
             at = self._clock.now()
-            inputs = list(self._inputs)
+            # A broken box (injected fault): the PC raises the pin, no pulse comes out of the box.
+            inputs = list(self._inputs) if self._fault_switch.answers() else []
             self._count_pulse(at)
         for trigger_input in inputs:
             trigger_input(at)

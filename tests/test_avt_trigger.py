@@ -27,6 +27,7 @@ from drivers.avt import (CameraError, CameraSettings, CameraTimeout, EmulatedCam
 from drivers.errors import DeviceFault, DeviceTimeout
 from drivers.sim.clock import SimClock
 from drivers.sim.config import Sun
+from drivers.sim.faults import InjectedFaults
 from drivers.sim.render import PinholeCamera, render
 from drivers.sim.rover import Rover
 from drivers.sim.world import World, WorldConfig
@@ -228,7 +229,7 @@ def rover(world) -> Rover:
     return Rover(world, x=0.0, y=-1.0, heading=math.pi / 2)
 
 
-def make_pair(world, rover, clock=None, settings=LOW, seed=1, record_times=None) -> StereoCameras:
+def make_pair(world, rover, clock=None, settings=LOW, seed=1, record_times=None, faults=None) -> StereoCameras:
     clock = clock or SimClock(1.0)
 
     def pose_of(sensor):
@@ -239,7 +240,7 @@ def make_pair(world, rover, clock=None, settings=LOW, seed=1, record_times=None)
         return pose
 
     pair = emulated_stereo_pair(world, pose_of("left"), pose_of("right"), clock=clock, seed=seed,
-                                default_settings=settings)
+                                default_settings=settings, faults=faults)
     pair.open()
     return pair
 
@@ -273,6 +274,43 @@ def test_an_untriggered_camera_times_out_naming_itself(world, rover):
     assert isinstance(caught.value, DeviceTimeout)
     assert str(caught.value).startswith("camera left (id emu-left): no frame within 0.05 s")
     assert camera.status().state == "idle" and "no trigger pulse" in camera.status().last_error
+    pair.close()
+
+
+def test_a_camera_silent_where_the_other_answered_stopped_answering(world, rover):
+    faults = InjectedFaults()
+    pair = make_pair(world, rover, clock=SimClock(100.0), faults=faults)
+    faults["camera-left"].arm(after=0)
+    with pytest.raises(CameraError, match=r"camera left \(id emu-left\): stopped answering: no frame for the "
+                                          r"trigger pulse at .* that camera right answered") as caught:
+        pair.grab("both", timeout_s=1.0)
+    assert not isinstance(caught.value, DeviceTimeout)
+    status = pair.status()
+    assert status.left.state == "error" and status.right.frames == 1 and status.trigger.last_error is None
+    with pytest.raises(CameraError, match="did not come back"):
+        pair.reset()                                    # still hung: not found after its reset
+    faults["camera-left"].clear()
+    pair.reset()
+    status = pair.status()
+    assert (status.left.state, status.left.frames, status.right.frames) == ("idle", 0, 0)  # counting from 1 again
+    assert {f.frame_number for f in pair.grab("both", timeout_s=1.0).values()} == {1}
+    pair.close()
+
+
+def test_a_pulse_no_camera_saw_is_the_trigger_box_failing(world, rover):
+    faults = InjectedFaults()
+    pair = make_pair(world, rover, clock=SimClock(100.0), faults=faults)
+    faults["trigger"].arm(after=1)
+    pair.grab("both", timeout_s=1.0)
+    with pytest.raises(TriggerError, match=r"trigger \(emulated\): stopped answering: the trigger pulse at .* "
+                                           r"reached no camera \(left and right waited 1 s\)"):
+        pair.grab("both", timeout_s=1.0)
+    status = pair.status()
+    assert "reached no camera" in status.trigger.last_error
+    assert status.left.state == status.right.state == "idle"   # the cameras are not to blame
+    faults["trigger"].clear()
+    assert set(pair.grab("both", timeout_s=1.0)) == {"left", "right"}
+    assert pair.status().trigger.last_error is None
     pair.close()
 
 
