@@ -28,6 +28,12 @@ class Device:
         self.last_error = str(exc)
         log.error("%s: %s", self.name, exc)
 
+    def live_fault(self) -> str | None:
+        """What the driver reports wrong right now (a frame that failed in a job, a unit that stopped
+        answering), before check() or reset() has looked; None: nothing. Status shows it; a new job
+        still may try the device, and finds out itself."""
+        return None
+
     def require_healthy(self) -> None:
         """ERR 503 naming the device and its last error, unless it is ok."""
         if self.health != "ok":
@@ -41,7 +47,7 @@ class Device:
 
     def health_items(self) -> dict[str, str]:
         """What status shows for this device."""
-        return {f"dev.{self.name}": self.health}
+        return {f"dev.{self.name}": "fault" if self.health == "ok" and self.live_fault() else self.health}
 
     def open(self) -> None: ...
     def close(self) -> None: ...

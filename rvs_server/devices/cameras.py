@@ -43,13 +43,26 @@ class StereoDevice(SensorDevice):
         return max(timeout, SIM_GRAB_TIMEOUT_S) if self.config.backend == "sim" else timeout
 
     def health_items(self) -> dict[str, str]:
-        if self.health != "ok" or self.driver is None:
+        """Each camera and the trigger box as their own status says, so a fault names the part."""
+        if self.driver is None or self.health == "off":
             return {"dev.camera_left": self.health, "dev.camera_right": self.health, "dev.trigger": self.health}
         status = self.driver.status()
         state = {"error": "fault", "closed": "off"}
-        return {"dev.camera_left": state.get(status.left.state, "ok"),
-                "dev.camera_right": state.get(status.right.state, "ok"),
-                "dev.trigger": "fault" if status.trigger.last_error else ("ok" if status.trigger.is_open else "off")}
+        parts = {"dev.camera_left": state.get(status.left.state, "ok"),
+                 "dev.camera_right": state.get(status.right.state, "ok"),
+                 "dev.trigger": "fault" if status.trigger.last_error else ("ok" if status.trigger.is_open else "off")}
+        if self.health == "fault" and "fault" not in parts.values():  # a fault no part can be blamed for
+            return dict.fromkeys(parts, "fault")
+        return parts
+
+    def live_fault(self) -> str | None:
+        if self.driver is None:
+            return None
+        status = self.driver.status()
+        broken = [f"camera {s.role}: {s.last_error}" for s in (status.left, status.right) if s.state == "error"]
+        if status.trigger.last_error:
+            broken.append(f"{status.trigger.device}: {status.trigger.last_error}")
+        return "; ".join(broken) or None
 
     def _make(self) -> None:
         from drivers.avt import CameraSettings, emulated_stereo_pair, vimba_stereo_pair
@@ -62,7 +75,8 @@ class StereoDevice(SensorDevice):
             testbed = self.testbed
             pair = emulated_stereo_pair(testbed.world, lambda t: testbed.sensor_pose("left"),
                                         lambda t: testbed.sensor_pose("right"), clock=self.clock,
-                                        trigger=trigger, seed=c.seed, default_settings=settings)
+                                        trigger=trigger, seed=c.seed, default_settings=settings,
+                                        faults=testbed.faults)
         else:
             if trigger is None:
                 from drivers.trigger import EmulatedTrigger
@@ -78,22 +92,24 @@ class StereoDevice(SensorDevice):
         if not self.config.enabled:
             self.health = "off"
             return
-        if self.driver is not None:
-            status = self.driver.status()
-            broken = [s for s in (status.left, status.right) if s.state == "error"]
-            if broken:
-                self._fault(DeviceFault(f"camera {broken[0].camera_id}: {broken[0].last_error}", "cameras"))
-                return
+        fault = self.live_fault()
+        if fault:
+            self._fault(DeviceFault(fault, "cameras"))
+            return
         if self.health != "ok" and self.config.backend == "sim":
             self.health, self.last_error = "ok", ""
 
     def reset(self) -> None:
-        if self.driver is not None:
-            try:
-                self.driver.reset()
-                self.health, self.last_error = "ok", ""
-            except DeviceFault as exc:
-                self._fault(exc)
-        else:
+        """A test grab, then the cameras' own reset. The grab is the only way to learn that the
+        trigger box works (it says nothing itself); the reset after it gives the cameras their
+        defaults and frame numbers from 1 again, as a fresh start would."""
+        if self.driver is None:
             self.close()
             self.open()
+            return
+        try:
+            self.driver.grab("both", timeout_s=self.grab_timeout_s)
+            self.driver.reset()
+            self.health, self.last_error = "ok", ""
+        except DeviceFault as exc:
+            self._fault(exc)

@@ -54,7 +54,8 @@ class PtuDevice(Device):
         try:
             if self.config.backend == "sim":
                 if self.emulator is None:
-                    self.emulator = PtuEmulator(self.clock)
+                    fault = self.testbed.faults["ptu"] if self.testbed is not None else None
+                    self.emulator = PtuEmulator(self.clock, fault=fault)
                     self._line = self.emulator.serve_pty()
                     if self.testbed is not None:
                         self.testbed.ptu_angles = self.emulator.true_angles_deg
@@ -78,9 +79,13 @@ class PtuDevice(Device):
         self._poller.start()
 
     def _poll(self) -> None:
-        """Keep the position fresh so `status` answers at once, even while a job holds the unit."""
+        """Keep the position fresh so `status` answers at once, even while a job holds the unit. A
+        unit that stopped answering is left alone until a command talks to it (a job, continue's
+        check, reset): each poll would hold the line for a whole read timeout."""
         missed = 0
         while not self._stop.wait(self.config.poll_interval_s):
+            if self.driver.not_answering:
+                continue
             try:
                 self._position = self.driver.position()
                 missed = 0
@@ -95,8 +100,13 @@ class PtuDevice(Device):
                     return
                 self._fault(exc)
 
+    def live_fault(self) -> str | None:
+        """Set from the first exchange the unit left unanswered (a job's or the poller's) until it
+        answers again, so status shows a silent unit at once."""
+        return self.driver.not_answering if self.driver is not None else None
+
     def position(self) -> tuple[float, float] | None:
-        return self._position if self.health == "ok" else None
+        return self._position if self.health == "ok" and not self.live_fault() else None
 
     def read_position(self) -> tuple[float, float]:
         self._position = self.driver.position()

@@ -36,7 +36,7 @@ class TofDevice(SensorDevice):
             from drivers.sr4000_emulator import Sr4000Emulator
             testbed = self.testbed
             camera = Sr4000Emulator(testbed.world, lambda: testbed.sensor_pose("tof"), self.clock, seed=c.seed,
-                                    settings=self._settings())
+                                    settings=self._settings(), fault=testbed.faults["tof"])
         else:
             from drivers.sr4000_mesasr import MesaSr4000
             camera = MesaSr4000(usb_serial=c.usb_serial, address=c.address or None, library=c.library or None,
@@ -61,6 +61,17 @@ class TofDevice(SensorDevice):
         else:
             self.health, self.last_error = "ok", ""
 
+    def live_fault(self) -> str | None:
+        """A frame that failed in a job: the camera's own status keeps it until a frame succeeds."""
+        return self.driver.status().last_error if self.driver is not None else None
+
     def reset(self) -> None:
+        """Close and open again. An emulated camera is opened now when its world is built, so a
+        camera that still does not answer is reported by the reset, not by the next job."""
         self.close()
         self.open()
+        if self.health == "ok" and self.config.backend == "sim" and self.testbed.ready:
+            try:
+                self.require()
+            except (DeviceFault, OSError, ValueError):
+                pass  # require() recorded the fault
