@@ -30,6 +30,9 @@ log = logging.getLogger("rvs.dispatch")
 
 Kind = Literal["immediate", "control", "job"]
 MODES = ("standby", "busy", "break", "sleep")
+# Jobs that ready the hardware for `continue` (PROTOCOL.md: after a device fault, reset, then
+# continue): they run in break mode and leave the server in it.
+BREAK_MODE_JOBS = ("reset",)
 
 
 class NoOptions(CommandConfig):
@@ -238,7 +241,7 @@ class Dispatcher:
         if self.job is not None:
             raise Busy(f"job {self.job.id} ({self.job.command}) is running at {self.job.percent:.0f}%; only "
                        f"immediate commands are accepted (break interrupts it)")
-        if spec.kind == "job" and self._base_mode == "break":
+        if spec.kind == "job" and self._base_mode == "break" and spec.name not in BREAK_MODE_JOBS:
             latest = self.server.recovery.latest()
             which = f" (job {latest.job}, {latest.command})" if latest else ""
             raise WrongMode(f"mode is break{which}: continue, abort or standby before starting {spec.name}")
@@ -337,7 +340,8 @@ class Dispatcher:
         log.info("job %s start: %s%s", job_id, line, " (continued)" if recovery else "")
         server.publish("progress", {"job": job_id, "command": spec.name, "percent": 0, "message": "started"})
         work = loop.run_in_executor(self._executor, _run_handler, spec, ctx, cfg)
-        self._job_future = asyncio.ensure_future(self._finish(job, ctx, rset, work))
+        back_to_break = self._base_mode == "break" and spec.name in BREAK_MODE_JOBS
+        self._job_future = asyncio.ensure_future(self._finish(job, ctx, rset, work, back_to_break))
         return self._job_future
 
     def _progress(self, job: Job, sink: ReplySink, percent: float, message: str) -> None:
@@ -346,7 +350,7 @@ class Dispatcher:
                                          "message": message})
 
     async def _finish(self, job: Job, ctx: JobContext, rset: RecoverySet | None,
-                      work: Awaitable[Any]) -> dict[str, Any]:
+                      work: Awaitable[Any], back_to_break: bool = False) -> dict[str, Any]:
         store = self.server.recovery
         keep_reason: str | None = None  # why the recovery set is kept; None drops it
         outcome = "failed"
@@ -382,8 +386,10 @@ class Dispatcher:
                     store.save(rset)
             self.job = None
             job.done.set()
-            # A job that can be continued leaves the server in break mode; anything else in standby.
-            self._base_mode = "break" if keep_reason is not None and rset is not None else "standby"
+            # A job that can be continued leaves the server in break mode, and so does a reset run in
+            # it; anything else leaves it in standby.
+            can_continue = keep_reason is not None and rset is not None
+            self._base_mode = "break" if can_continue or back_to_break else "standby"
             log.info("job %s end (%s)", job.id, keep_reason or outcome)
             self._announce_mode()
 
@@ -430,9 +436,12 @@ def _missing_data_file(exc: Exception, data_dir: Path) -> str | None:
 
 def _device_error(exc: Exception) -> RvsError:
     name = getattr(exc, "device", None) or "device"
+    text = str(exc)
+    if not text.startswith(name):  # drivers' messages mostly begin with the device's name already
+        text = f"{name}: {text}"
     if isinstance(exc, DeviceTimeout):
-        return Timeout(f"{name}: {exc}")
-    return DeviceError(f"{name}: {exc}")
+        return Timeout(text)
+    return DeviceError(text)
 
 
 def map_device_errors(exc: Exception) -> RvsError:
