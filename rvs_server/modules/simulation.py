@@ -1,7 +1,82 @@
 """Commands that act on the simulated world only (PROTOCOL.md "Simulated world"); with real devices
-they are `409 wrong-mode`."""
+they are `409 wrong-mode`.
+
+`sim-fault` breaks an emulated device the way hardware breaks: the switch (drivers/sim/faults.py)
+sits inside the emulator, which then stops answering on its own line (no PTU reply, no SR4000
+frame, no camera frame, no trigger pulse out of the box). The server learns of it only as it would
+of a real fault, so what a job does about it is what it would do on the test bed.
+"""
 from __future__ import annotations
 
-from ..dispatch import Module
+from typing import Any, Literal
+
+from pydantic import Field
+
+from drivers.sim.faults import FAULT_DEVICES
+
+from ..config import CommandConfig
+from ..dispatch import Call, Module
+from ..protocol import BadRequest, WrongMode
 
 module = Module("simulation", summary="the simulated world: injected device faults")
+
+FaultDevice = Literal["ptu", "tof", "camera-left", "camera-right", "trigger"]
+assert set(FaultDevice.__args__) == set(FAULT_DEVICES)  # one list of devices, in drivers/sim/faults.py
+
+
+class SimFaultConfig(CommandConfig):
+    device: FaultDevice | None = Field(None, description="the emulated device to break (or, with --clear, to "
+                                       "mend; --clear alone mends every one)")
+    after: int | None = Field(None, ge=0, le=1_000_000, description="requests it still answers first (PTU "
+                              "commands, SR4000 frames, camera frames, trigger pulses); default 0: fails from now")
+    kind: Literal["silent"] | None = Field(None, description="how it fails; silent (default): it answers nothing "
+                                           "until cleared")
+    clear: bool = Field(False, description="remove the fault; the device answers again (reset, then continue)")
+
+
+def _emulated(server: Any, device: str) -> str | None:
+    """Why `device` cannot take a fault (it is a real one, or off), or None."""
+    config = server.devices.config
+    section, backend, wanted = {
+        "ptu": ("ptu", config.ptu.backend, "sim"),
+        "tof": ("tof", config.tof.backend, "sim"),
+        "camera-left": ("cameras", config.cameras.backend, "sim"),
+        "camera-right": ("cameras", config.cameras.backend, "sim"),
+        "trigger": ("cameras", config.cameras.trigger_backend, "sim"),
+    }[device]
+    if backend != wanted:
+        key = "trigger_backend" if device == "trigger" else "backend"
+        return f"the {device} is a real device (devices.toml [{section}] {key} = {backend!r})"
+    if not getattr(config, section).enabled:
+        return f"the {device} is off (devices.toml [{section}] enabled = false)"
+    return None
+
+
+def validate_fault(server: Any, cfg: SimFaultConfig) -> None:
+    if cfg.clear:
+        if cfg.after is not None or cfg.kind is not None:
+            raise BadRequest("sim-fault: --clear takes no --after or --kind (it removes the fault; "
+                             "sim-fault --device D --after N arms one)")
+    elif cfg.device is None:
+        raise BadRequest(f"sim-fault: give --device ({', '.join(FAULT_DEVICES)}) with --after N and --kind "
+                         f"silent, or --clear [--device D]")
+    devices = [cfg.device] if cfg.device else list(FAULT_DEVICES)
+    refusals = [why for why in (_emulated(server, d) for d in devices) if why]
+    if refusals and len(refusals) == len(devices):  # --clear alone mends whichever devices are emulated
+        raise WrongMode(f"sim-fault: {'; '.join(refusals)}; faults are injected into emulated devices only")
+
+
+@module.immediate("sim-fault", SimFaultConfig, validate=validate_fault)
+def sim_fault(call: Call, cfg: SimFaultConfig) -> dict[str, Any]:
+    """Break an emulated device (it stops answering after N more requests) or mend it (--clear)."""
+    faults = call.server.devices.testbed.faults
+    if cfg.clear:
+        cleared = [cfg.device] if cfg.device else [d for d in FAULT_DEVICES if not _emulated(call.server, d)]
+        for device in cleared:
+            faults[device].clear()
+        return {"cleared": " ".join(cleared), "next": "reset, then continue"}
+    switch = faults[cfg.device]
+    switch.arm(after=cfg.after or 0, kind=cfg.kind or "silent")
+    state = switch.state()
+    return {"device": cfg.device, "kind": state.kind, "after": cfg.after or 0, "state": state.state,
+            "answered": state.answered}
