@@ -210,6 +210,26 @@ def views_of(server: ServerProcess, part: str) -> int:
     return len(json.loads((server.data_dir / "products" / part / "views.json").read_text()))
 
 
+def test_sim_fault_names_what_is_wrong_and_refuses_devices_that_are_not_emulated(server_factory):
+    server = server_factory(configs={"devices.toml": "[ptu]\nenabled = false\n"})
+    with server.connect() as c:
+        assert "sim-fault" in pairs(c.command("help"))["commands"].split()
+        assert "camera-left" in pairs(c.command("help sim-fault"))["opt.device"]
+        refused = {
+            "sim-fault": "400 bad-request sim-fault: give --device (ptu, tof, camera-left, camera-right, trigger)",
+            "sim-fault --device lens": "400 bad-request sim-fault: --device = 'lens'",
+            "sim-fault --device tof --after -1": "--after = '-1': Input should be greater than or equal to 0",
+            "sim-fault --device tof --kind loud": "--kind = 'loud': Input should be 'silent'",
+            "sim-fault --clear --after 2": "--clear takes no --after or --kind",
+            "sim-fault --device ptu": "409 wrong-mode sim-fault: the ptu is off (devices.toml [ptu] enabled = false)",
+        }
+        for line, expected in refused.items():
+            assert expected in c.command(line), line
+        armed = pairs(c.command("sim-fault --device trigger --after 3"))
+        assert (armed["state"], armed["after"], armed["kind"]) == ("armed", "3", "silent")
+        assert pairs(c.command("sim-fault --clear"))["cleared"] == "tof camera-left camera-right trigger"
+
+
 def test_zz_print_the_fault_table():
     """Runs last (by name): the table of every case above, for `pytest -s` and the report."""
     if not TABLE:
