@@ -819,6 +819,13 @@ def report(run: Run, quit_reply: str, exit_code: int | None, base: Path, config_
     print(f"tracebacks in the server's log: {tracebacks}; warnings and errors: "
           f"{sum(levels.values())}" + "".join(f"\n  {n} x {lv} {src}: {msg}" for (lv, src, msg), n in
                                              levels.most_common(8)))
+    shown: set[str] = set()
+    for block in text.split("Traceback (most recent call last):")[1:]:  # each kind once, its innermost frames
+        lines = [x for x in block.splitlines() if x.strip()]
+        end = next((i for i, x in enumerate(lines) if not x.startswith(" ")), len(lines) - 1)
+        if lines and lines[end] not in shown and len(shown) < 3:
+            shown.add(lines[end])
+            print("  traceback: " + "\n  ".join(lines[max(0, end - 6):end + 1]))
     print(f"quit: {quit_reply!r}; server exit status {exit_code}")
 
     if sum(left.values()):
@@ -896,6 +903,7 @@ def main() -> int:
 
     tmp = tempfile.mkdtemp(prefix="rvs-soak-")
     base = Path(tmp)
+    status = 1
     try:
         config_dir = write_configs(base / "configs", {"server.toml": server_toml(args)})
         server = ServerProcess(data_dir=base / "data", config_dir=config_dir).start()
@@ -907,10 +915,14 @@ def main() -> int:
         finally:
             quit_reply, code = quit_server(server)
             run.context.destroy(linger=0)
-        return report(run, quit_reply, code, base, config_dir)
+        status = report(run, quit_reply, code, base, config_dir)
+        return status
     finally:
         if args.keep:
             print(f"kept {base}")
+        elif status:  # a failure: keep the log and the server's stderr to look at, not the products
+            shutil.rmtree(base / "data" / "products", ignore_errors=True)
+            print(f"kept {base} (without data/products) to look at the failure")
         else:
             shutil.rmtree(base, ignore_errors=True)
 
