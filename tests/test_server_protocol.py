@@ -396,3 +396,28 @@ def test_zmq_pub_carries_events(server):
             break
     sub.close()
     assert ("mode", {"mode": "busy"}) in topics and ("mode", {"mode": "standby"}) in topics
+
+
+def test_help_is_answered_while_reset_replaces_the_ptu_driver(server):
+    """help move-ptu reads the unit's limits on the event loop while reset (in the job thread)
+    closes and reopens the PTU: it says the unit is re-initialising, never ERR 500."""
+    import threading
+    errors: list[str] = []
+    stop = threading.Event()
+
+    def ask() -> None:
+        with server.connect() as c:
+            while not stop.is_set():
+                reply = c.command("help move-ptu")
+                if " OK " not in reply:
+                    errors.append(reply)
+    asker = threading.Thread(target=ask)
+    asker.start()
+    try:
+        with server.connect() as c:
+            for _ in range(15):
+                assert " OK " in c.command("reset", timeout=60)
+    finally:
+        stop.set()
+        asker.join()
+    assert errors == []

@@ -146,6 +146,7 @@ class PtuDevice(Device):
             self._fault(exc)
 
     def close(self) -> None:
+        self.health = "off"  # first: commands on the event loop read health, then the driver
         self._stop.set()
         if self._poller is not None:
             self._poller.join(timeout=2)

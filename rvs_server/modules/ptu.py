@@ -69,9 +69,10 @@ def validate_move(server: Any, cfg: MovePtuConfig) -> None:
 def unit_limits(server: Any) -> dict[str, str]:
     """What the unit itself allows, for help: the Config's bounds are only the outer envelope."""
     device = server.devices.ptu
-    if device.health != "ok":
-        return {"unit": f"{device.name} is {device.health}"}
-    limits = device.driver.limits
+    driver = device.driver  # once: a reset or reinit in the job thread may drop it meanwhile
+    if device.health != "ok" or driver is None:
+        return {"unit": f"{device.name} is {device.health if driver is not None else 're-initialising'}"}
+    limits = driver.limits
     low = max(limits.pan_min_speed_deg_s, limits.tilt_min_speed_deg_s)
     high = min(limits.pan_max_speed_deg_s, limits.tilt_max_speed_deg_s)
     return {"unit.pan": f"{limits.pan_min_deg:.2f}..{limits.pan_max_deg:.2f}",
