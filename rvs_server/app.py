@@ -35,7 +35,7 @@ from .dispatch import CommandSpec, Dispatcher, Module, Registry, Session
 from .files import remove_stale_temporaries
 from .jobs import JobCounter, RecoveryStore
 from .products import Products
-from .toolbox.geometry import RoverPose
+from toolbox.geometry import RoverPose
 from .protocol import BadRequest
 from .transports.tcp import claim_tcp_port, start_tcp
 from .transports.zmq import ZmqTransport

@@ -13,7 +13,7 @@ from typing import Any, Literal
 from pydantic import Field
 
 from .config import Settings
-from .toolbox.geometry import Intrinsics, SensorMount
+from toolbox.geometry import Intrinsics, SensorMount
 
 Vector = tuple[float, float, float]
 

@@ -65,8 +65,8 @@ import cv2
 import numpy as np
 import pycolmap
 
-from .toolbox.geometry import Intrinsics
-from .toolbox.stereo import Rectification, SgbmConfig, stereo_points
+from toolbox.geometry import Intrinsics
+from toolbox.mapping.stereo import Rectification, SgbmConfig, stereo_points
 
 __all__ = ["SfmConfig", "HopReconstruction", "reconstruct_hop", "as_intrinsics", "colmap_camera",
            "Mapper", "MAPPERS", "DenseConfig", "StereoPair", "densify", "scene_depths", "choose_pairs",

@@ -14,13 +14,13 @@ import numpy as np
 from pydantic import Field
 
 from .config import Range
-from .toolbox import dem as dem_tools
-from .toolbox import hazard as hazard_tools
-from .toolbox.geometry import Intrinsics, RoverPose, camera_to_world, footprint_polygon, relative_pose
-from .toolbox.localisation import AlignConfig, align_to_map, apply
-from .toolbox.ortho import merge_views, ortho_image
-from .toolbox.stereo import SgbmConfig, StereoCalibration, rectification, stereo_points
-from .toolbox.views import plan_views
+from toolbox.mapping import dem as dem_tools
+from toolbox.mapping import hazard as hazard_tools
+from toolbox.geometry import Intrinsics, RoverPose, camera_to_world, footprint_polygon, relative_pose
+from toolbox.mapping.localisation import AlignConfig, align_to_map, apply
+from toolbox.mapping.ortho import merge_views, ortho_image
+from toolbox.mapping.stereo import SgbmConfig, StereoCalibration, rectification, stereo_points
+from toolbox.mapping.views import plan_views
 from .workflow import Operations, StepContext, StepParams
 
 operations = Operations()

@@ -16,7 +16,7 @@ import numpy as np
 import tifffile
 
 from .files import atomic_path
-from .toolbox.grid import GridSpec
+from toolbox.grid import GridSpec
 
 # GeoTIFF keys: raster is "pixel is area"; model type projected; a user-defined projection in metres.
 _GT_MODEL_TYPE, _GT_RASTER_TYPE, _PROJECTED_CS, _PROJ_LINEAR_UNITS, _GT_CITATION = 1024, 1025, 3072, 3076, 1026

@@ -44,7 +44,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from .protocol import check_safe_name
-from .toolbox.routes_match import MATCHER_NAMES, PlaceMatcher, grey_image, make_matcher
+from toolbox.routes.match import MATCHER_NAMES, PlaceMatcher, grey_image, make_matcher
 
 DATABASE_FILE = "routes.sqlite"
 ACTION_KINDS = ("forward", "backward", "turn")

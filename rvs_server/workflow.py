@@ -36,7 +36,7 @@ from pydantic import BaseModel, ConfigDict, ValidationError
 
 from .config import describe_validation_error
 from .files import save_npz_atomic, write_text_atomic
-from .toolbox.grid import GridSpec
+from toolbox.grid import GridSpec
 
 # `$args.cell` or `${args.cell}` (the braces need block style in YAML; flow style takes the bare form).
 REFERENCE = re.compile(r"^\$(?:\{(args|config)\.([A-Za-z_]\w*)\}|(args|config)\.([A-Za-z_]\w*))$")

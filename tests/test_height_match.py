@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from rvs_server.toolbox.grid import GridSpec
-from rvs_server.toolbox.height_match import height_grid, match_height_maps
+from toolbox.grid import GridSpec
+from toolbox.mapping.height_match import height_grid, match_height_maps
 
 
 def terrain(rng: np.random.Generator, rocks: int, extent: float = 3.0):

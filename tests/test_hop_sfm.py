@@ -16,8 +16,8 @@ from drivers.sim.config import WorldConfig
 from drivers.sim.hopper import Hopper, HopperConfig, HopRecord
 from drivers.sim.world import World
 from rvs_server import hop_sfm
-from rvs_server.toolbox.geometry import Intrinsics, project, rotation_x, rotation_y
-from rvs_server.toolbox.hopping import process_hop
+from toolbox.geometry import Intrinsics, project, rotation_x, rotation_y
+from toolbox.hopping import process_hop
 
 # A mild barrel distortion, so the known-intrinsics path carries k1 and k2 through COLMAP and rectification.
 CAMERA = {"width": 320, "height": 240, "motion_blur": False, "k1": -0.05, "k2": 0.005}

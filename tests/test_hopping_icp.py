@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from rvs_server.toolbox.hopping_icp import (align_with_overlap_elimination, apply_transform, common_bounds,
+from toolbox.hopping.icp import (align_with_overlap_elimination, apply_transform, common_bounds,
                                             crop_mask, horizontal_bounds, icp_point_to_point, transform_change)
 
 

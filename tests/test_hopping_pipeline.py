@@ -9,8 +9,8 @@ import math
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from rvs_server.toolbox import hopping
-from rvs_server.toolbox.geometry import rotation_z
+from toolbox import hopping
+from toolbox.geometry import rotation_z
 
 G = 1.62
 

@@ -197,7 +197,7 @@ def test_the_rover_stops_to_look_at_unknown_ground_before_it_drives_there(server
     PROGRESS says why."""
     from rvs_server.modules.navigation import NavigationSettings
     from rvs_server.rasters import read_geotiff
-    from rvs_server.toolbox.hazard import UNKNOWN
+    from toolbox.mapping.hazard import UNKNOWN
     goal = (-4.3, 0.0)
     server = server_factory(configs={"navigation.toml": "drive_error_sigmas = 0\n",
                                      "world.toml": "seed = 3\nsize_m = [12.0, 12.0]\n[rocks]\ncover = 0.16\n"})

@@ -10,15 +10,15 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from rvs_server.toolbox.grid import GridSpec
-from rvs_server.toolbox.planning import (MapLayers, PlanningParams, apply_unknown_policy, astar,
+from toolbox.grid import GridSpec
+from toolbox.planning import (MapLayers, PlanningParams, apply_unknown_policy, astar,
                                          blank_map_spanning, cells_to_world, dijkstra_reference,
                                          distance_to_border, douglas_peucker, drivable_prefix, fuse_maps,
                                          inflate_hazards, keep_route, path_cost, path_length, plan_path,
                                          polyline_cost, proximity_cost,
                                          resample_onto, segment_cells, segment_is_clear, simplify_path,
                                          terrain_cost, world_to_cells)
-from rvs_server.toolbox.planning_search import ASTAR_SLACK
+from toolbox.planning.search import ASTAR_SLACK
 
 SQRT2 = math.sqrt(2.0)
 
@@ -506,7 +506,7 @@ def test_navigation_step_fuse_plan_and_cut():
 
 
 def test_fuse_nearest_takes_the_closest_look_but_keeps_close_hazards():
-    from rvs_server.toolbox.planning import fuse_nearest
+    from toolbox.planning import fuse_nearest
     spec = GridSpec(0.0, 0.0, 0.1, 10, 40)              # 4 m east-west, 1 m north-south
     blank = MapLayers(spec, np.full(spec.shape, np.nan), np.zeros(spec.shape, bool), np.ones(spec.shape, bool))
     far_says_rock = np.zeros(spec.shape, bool)
@@ -530,7 +530,7 @@ def test_fuse_nearest_takes_the_closest_look_but_keeps_close_hazards():
 
 
 def test_holes_walled_in_by_seen_ground_become_hazards_but_not_the_outside_the_specks_or_the_start():
-    from rvs_server.toolbox.planning import enclosed_unknown, with_hazards
+    from toolbox.planning import enclosed_unknown, with_hazards
     spec = GridSpec(0.0, 0.0, 0.1, 30, 30)
     unknown = np.zeros(spec.shape, bool)
     unknown[:, 25:] = True                               # the unexplored outside, open to the border
@@ -561,7 +561,7 @@ def test_holes_walled_in_by_seen_ground_become_hazards_but_not_the_outside_the_s
 def test_holes_are_hazards_for_stereo_and_stay_unknown_for_tof_by_default():
     """navigation.toml holes: stereo's holes are often rocks it could not match, TOF's occlusion shadows."""
     from rvs_server.modules.navigation import NavigationSettings, holes_as_hazards
-    from rvs_server.toolbox.geometry import RoverPose
+    from toolbox.geometry import RoverPose
     spec = GridSpec(0.0, 0.0, 0.1, 30, 30)
     unknown = np.zeros(spec.shape, bool)
     unknown[20:24, 20:24] = True                         # 2.5 m from the start: outside either blind ring
@@ -579,7 +579,7 @@ def test_unknown_ground_is_to_look_at_until_a_look_from_close_by_has_seen_into_i
     blind ring) has seen into it; what is left then is a shadow. Nor is ground beside the rover, in
     its blind ring: no look from there can see it, and stopping for it would stall the rover."""
     from rvs_server.modules.navigation import NavigationSettings, unlooked_ground
-    from rvs_server.toolbox.geometry import RoverPose
+    from toolbox.geometry import RoverPose
     spec = GridSpec(0.0, 0.0, 0.05, 120, 120)             # 6 x 6 m
     unknown = np.zeros(spec.shape, bool)
     unknown[60:64, 60:64] = True                          # a 20 cm shadow round (3.1, 3.1)
@@ -604,7 +604,7 @@ def test_unknown_ground_is_to_look_at_until_a_look_from_close_by_has_seen_into_i
 
 
 def test_the_drive_stops_short_of_the_first_unknown_ground_its_path_crosses():
-    from rvs_server.toolbox.planning import short_of_first_touch
+    from toolbox.planning import short_of_first_touch
     spec = GridSpec(0.0, 0.0, 0.05, 40, 160)             # 8 x 2 m
     unknown = np.zeros(spec.shape, bool)
     unknown[18:22, 100:104] = True                        # a shadow on the line y = 1 at x = 5.0-5.2
@@ -623,7 +623,7 @@ def test_the_drive_stops_short_of_the_first_unknown_ground_its_path_crosses():
 
 
 def test_ground_outside_the_operating_area_is_a_hazard_the_rover_keeps_clear_of():
-    from rvs_server.toolbox.planning import outside_box, with_hazards
+    from toolbox.planning import outside_box, with_hazards
     spec = GridSpec(0.0, 0.0, 0.1, 40, 60)               # 6 x 4 m
     box = (0.0, 6.0, 0.0, 3.0)                           # the northern metre is off limits
     outside = outside_box(spec, box)
@@ -643,7 +643,7 @@ def test_ground_outside_the_operating_area_is_a_hazard_the_rover_keeps_clear_of(
 
 
 def test_holes_on_path_are_the_holes_a_path_passes_within_the_clearance_of():
-    from rvs_server.toolbox.planning import holes_on_path
+    from toolbox.planning import holes_on_path
     holes = np.zeros((40, 40), bool)
     holes[10:13, 18:21] = True                           # beside the path: 0.2 m from its cells
     holes[30:33, 5:8] = True                             # far from it
@@ -659,7 +659,7 @@ def test_holes_on_path_are_the_holes_a_path_passes_within_the_clearance_of():
 
 
 def test_unconfirmed_ground_is_planned_through_when_it_closes_the_way_or_makes_a_long_detour():
-    from rvs_server.toolbox.planning import plan_through_unconfirmed, with_unknown
+    from toolbox.planning import plan_through_unconfirmed, with_unknown
     spec = GridSpec(0.0, 0.0, 0.1, 60, 100)             # 10 m east-west, 6 m north-south
     params = PlanningParams(rover_radius_m=0.2, hazard_margin_m=0.0, proximity_cost=0.0)
     wall = np.zeros(spec.shape, bool)
@@ -691,7 +691,7 @@ def test_unconfirmed_ground_is_planned_through_when_it_closes_the_way_or_makes_a
 
 
 def test_a_blocked_goal_is_approached_at_the_nearest_open_cell_a_path_can_reach():
-    from rvs_server.toolbox.planning import nearest_open_cell
+    from toolbox.planning import nearest_open_cell
     spec = GridSpec(0.0, 0.0, 0.1, 20, 20)               # 2 x 2 m
     cost = np.zeros(spec.shape)
     cost[8:13, 8:13] = np.inf                            # a blocked square round the goal (1.05, 1.05) ...

@@ -9,8 +9,8 @@ from drivers.sim.config import DriveError, WorldConfig
 from drivers.sim.motion import dead_reckon, execute, turn_and_distance
 from drivers.sim.rover import Rover
 from drivers.sim.world import World
-from rvs_server.toolbox.grid import GridSpec
-from rvs_server.toolbox.planning_drive_error import cut_for_drive_error, drive_error_profile, footprint_outline
+from toolbox.grid import GridSpec
+from toolbox.planning.drive_error import cut_for_drive_error, drive_error_profile, footprint_outline
 
 MODEL = DriveError()
 

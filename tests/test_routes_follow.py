@@ -11,9 +11,9 @@ import math
 
 import pytest
 
-from rvs_server.toolbox.routes_follow import FollowParams, Leg, RouteFollower
-from rvs_server.toolbox.routes_match import MatchResult
-from rvs_server.toolbox.routes_network import NetworkLeg, NetworkLink, Segment, segments, shortest_way
+from toolbox.routes.follow import FollowParams, Leg, RouteFollower
+from toolbox.routes.match import MatchResult
+from toolbox.routes.network import NetworkLeg, NetworkLink, Segment, segments, shortest_way
 
 DEPTH = 4.0      # the scene depth the fake matcher's scale implies (FollowParams.scene_depth_m)
 FOCAL = 500.0

@@ -16,7 +16,7 @@ from drivers.sim.config import Sun, WorldConfig
 from drivers.sim.render import PinholeCamera, render
 from drivers.sim.rover import Rover
 from drivers.sim.world import World
-from rvs_server.toolbox.routes_match import (ContourConfig, ContourMatcher, FeatureConfig,
+from toolbox.routes.match import (ContourConfig, ContourMatcher, FeatureConfig,
                                              FeatureMatcher, PlaceMatcher, bright_cells, cell_brightness,
                                              cluster_contour, heading_offset, horizontal_runs, main_cluster,
                                              make_matcher, merge_vertical_runs, rank_route)

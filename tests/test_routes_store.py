@@ -13,7 +13,7 @@ import pytest
 from rvs_server import routes_store
 from rvs_server.routes_store import (DATABASE_FILE, MIGRATIONS, SCHEMA_VERSION, Action, RouteStore,
                                      RouteStoreConfig, RouteStoreError, Triplet, migrate, reverse_triplets)
-from rvs_server.toolbox.routes_match import make_matcher
+from toolbox.routes.match import make_matcher
 
 
 def scene(seed: int, width: int = 192, height: int = 144) -> np.ndarray:

@@ -16,7 +16,7 @@ from drivers.sim.config import WorldConfig
 from drivers.sim.hopper import Hopper, HopperConfig, HopRecord
 from drivers.sim.hopper_flight import OffTerrain, body_samples, clearance, first_contact, launch_velocity
 from drivers.sim.world import World
-from rvs_server.toolbox.hopping_ballistics import hop_range, launch_to_target
+from toolbox.hopping.ballistics import hop_range, launch_to_target
 
 G = 1.62
 PLAIN = {"undulation_rms_m": 0.0, "relief_rms_m": 0.0}

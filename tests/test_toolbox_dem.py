@@ -7,10 +7,10 @@ import numpy as np
 import open3d as o3d
 import pytest
 
-from rvs_server.toolbox import dem as D
-from rvs_server.toolbox import geometry as g
-from rvs_server.toolbox import ortho as O
-from rvs_server.toolbox.grid import GridSpec
+from toolbox.mapping import dem as D
+from toolbox import geometry as g
+from toolbox.mapping import ortho as O
+from toolbox.grid import GridSpec
 
 SR4000 = g.Intrinsics.from_fov(176, 144, math.radians(43.6))
 

@@ -13,8 +13,8 @@ from drivers.sim.config import WorldConfig
 from drivers.sim.render import PinholeCamera
 from drivers.sim.rover import Rover
 from drivers.sim.world import World
-from rvs_server.toolbox import geometry as g
-from rvs_server.toolbox import views as v
+from toolbox import geometry as g
+from toolbox.mapping import views as v
 
 SR4000_FOV = (math.radians(43.6), math.radians(34.6))
 angles = st.floats(-math.pi, math.pi, allow_nan=False)

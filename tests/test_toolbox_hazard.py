@@ -11,11 +11,11 @@ from drivers.sim.config import WorldConfig
 from drivers.sim.render import PinholeCamera, render
 from drivers.sim.rover import Rover
 from drivers.sim.world import World
-from rvs_server.toolbox import dem as D
-from rvs_server.toolbox import geometry as g
-from rvs_server.toolbox import hazard as H
-from rvs_server.toolbox import views as V
-from rvs_server.toolbox.grid import GridSpec
+from toolbox.mapping import dem as D
+from toolbox import geometry as g
+from toolbox.mapping import hazard as H
+from toolbox.mapping import views as V
+from toolbox.grid import GridSpec
 
 CELL = 0.02
 

@@ -6,7 +6,7 @@ import math
 import numpy as np
 import pytest
 
-from rvs_server.toolbox.localisation import AlignConfig, align_to_map, apply, four_dof
+from toolbox.mapping.localisation import AlignConfig, align_to_map, apply, four_dof
 
 
 def terrain(rng: np.random.Generator, rocks: int, extent: float = 5.0, spacing: float = 0.03) -> np.ndarray:

@@ -11,10 +11,10 @@ from drivers.sim.config import WorldConfig
 from drivers.sim.render import PinholeCamera, render
 from drivers.sim.rover import Rover
 from drivers.sim.world import World
-from rvs_server.toolbox import dem as D
-from rvs_server.toolbox import geometry as g
-from rvs_server.toolbox import stereo as S
-from rvs_server.toolbox.grid import GridSpec
+from toolbox.mapping import dem as D
+from toolbox import geometry as g
+from toolbox.mapping import stereo as S
+from toolbox.grid import GridSpec
 
 WIDTH, HEIGHT = 320, 240
 IDEAL = g.Intrinsics.from_fov(WIDTH, HEIGHT, math.radians(60))

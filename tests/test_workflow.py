@@ -8,7 +8,7 @@ import pytest
 from pydantic import Field
 
 from rvs_server.config import CommandConfig, Settings
-from rvs_server.toolbox.grid import GridSpec
+from toolbox.grid import GridSpec
 from rvs_server.workflow import (Operations, StepParams, WorkflowError, load_result, load_workflow,
                                  resolve_params, run_workflow, save_result)
 

@@ -18,7 +18,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 from .render import PinholeCamera
 from .rover import CAMERA_AXES_IN_HEAD, rotation_y
 
-MOON_GRAVITY = 1.62  # m/s^2; the same value as rvs_server.toolbox.hopping_parabola (drivers never import it)
+MOON_GRAVITY = 1.62  # m/s^2; the same value as toolbox.hopping.parabola (drivers never import it)
 
 
 class _Model(BaseModel):

@@ -2,7 +2,7 @@
 
 Pure functions over any surface that answers `height_at(x, y)` (a World, or a synthetic height
 function in tests). Frames: world x east, y north, z up; metres, seconds, radians; headings
-counter-clockwise from +x and elevations above the horizontal, as in rvs_server.toolbox.hopping_ballistics.
+counter-clockwise from +x and elevations above the horizontal, as in toolbox.hopping.ballistics.
 
 In flight only gravity acts, so the centre of mass follows p(t) = p0 + v t - g t^2 / 2 z exactly (no
 integration error). The body is a sphere of radius r around the centre of mass. It touches the

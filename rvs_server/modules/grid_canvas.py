@@ -6,8 +6,8 @@ import math
 import cv2
 import numpy as np
 
-from ..toolbox.colour import upscale
-from ..toolbox.grid import GridSpec
+from toolbox.colour import upscale
+from toolbox.grid import GridSpec
 
 
 class Canvas:

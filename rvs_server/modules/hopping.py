@@ -35,9 +35,9 @@ from ..hop_sfm import Mapper
 from ..jobs import JobContext
 from ..protocol import BadRequest, DeviceError, WrongMode
 from ..rasters import write_geotiff, write_png
-from ..toolbox.colour import with_title
-from ..toolbox.geometry import rotation_z
-from ..toolbox.hopping import MOON_GRAVITY, hop_range
+from toolbox.colour import with_title
+from toolbox.geometry import rotation_z
+from toolbox.hopping import MOON_GRAVITY, hop_range
 from .hopping_pictures import contact_sheet, global_maps
 from .hopping_plan import run_hop_plan
 from .hopping_store import cloud_of, next_hop_number, read_ply, write_hop, write_ply

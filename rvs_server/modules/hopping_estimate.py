@@ -24,9 +24,9 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from ..hop_sfm import HopReconstruction
-from ..toolbox.geometry import apply, compose, rigid, rotation_z
-from ..toolbox.height_match import match_height_maps
-from ..toolbox.hopping import (HopResult, align_with_overlap_elimination, centre_of_mass_positions, fit_flight,
+from toolbox.geometry import apply, compose, rigid, rotation_z
+from toolbox.mapping.height_match import match_height_maps
+from toolbox.hopping import (HopResult, align_with_overlap_elimination, centre_of_mass_positions, fit_flight,
                                 process_hop)
 from .hopping_store import HopObservation
 

@@ -13,10 +13,10 @@ import math
 import cv2
 import numpy as np
 
-from ..toolbox.colour import NO_DATA_RGB, colourise, upscale, with_colour_bar, with_key, with_title
-from ..toolbox.geometry import apply, invert
-from ..toolbox.grid import GridSpec
-from ..toolbox.hopping import LandingPlan, top_down_maps
+from toolbox.colour import NO_DATA_RGB, colourise, upscale, with_colour_bar, with_key, with_title
+from toolbox.geometry import apply, invert
+from toolbox.grid import GridSpec
+from toolbox.hopping import LandingPlan, top_down_maps
 from .hopping_estimate import HopEstimate, flight_positions
 
 HOP_COLOURS = [(230, 25, 75), (60, 180, 75), (255, 225, 25), (0, 130, 200), (245, 130, 48), (145, 30, 180),

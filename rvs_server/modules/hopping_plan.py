@@ -26,8 +26,8 @@ from ..hop_sfm import HopReconstruction, SfmConfig, densify, reconstruct_hop, ti
 from ..jobs import JobContext
 from ..protocol import BadRequest, RvsError
 from ..rasters import write_geotiff, write_png
-from ..toolbox.geometry import apply
-from ..toolbox.hopping import LandingParams, LandingPlan, NoGroundError, plan_landing
+from toolbox.geometry import apply
+from toolbox.hopping import LandingParams, LandingPlan, NoGroundError, plan_landing
 from .hopping_estimate import EstimateError, EstimateParams, HopEstimate, estimate_hop, flight_check
 from .hopping_pictures import plan_pictures, trajectory_picture, truth_target_picture
 from .hopping_store import (HopObservation, cloud_of, load_observation, load_reconstruction, load_truth, read_ply,

@@ -22,7 +22,7 @@ import numpy as np
 
 from ..files import atomic_file, save_npz_atomic
 from ..hop_sfm import HopReconstruction
-from ..toolbox.geometry import Intrinsics
+from toolbox.geometry import Intrinsics
 
 HOP_FORMAT = "rvs-hop/1"
 HOP_NAME = re.compile(r"hop-(\d{3,})")

@@ -16,7 +16,7 @@ from ..config import CommandConfig, SafeName, Settings
 from ..dispatch import Module
 from ..jobs import JobContext
 from ..rasters import write_png, write_tiff
-from ..toolbox.colour import colourise, upscale, with_colour_bar, with_title
+from toolbox.colour import colourise, upscale, with_colour_bar, with_title
 
 
 class ImagingSettings(Settings):

@@ -22,9 +22,9 @@ from ..jobs import JobContext
 from ..mapping_ops import operations
 from ..protocol import BadRequest
 from ..rasters import write_geotiff, write_png
-from ..toolbox.colour import categorical, colourise, upscale, with_colour_bar, with_key, with_title
-from ..toolbox.grid import GridSpec
-from ..toolbox.hazard import HAZARD, ROUGHNESS, SLOPE, STEP, UNKNOWN
+from toolbox.colour import categorical, colourise, upscale, with_colour_bar, with_key, with_title
+from toolbox.grid import GridSpec
+from toolbox.mapping.hazard import HAZARD, ROUGHNESS, SLOPE, STEP, UNKNOWN
 from ..workflow import WorkflowError, load_workflow, resolve_params, run_workflow
 
 

@@ -40,15 +40,15 @@ from ..mapping_ops import leave_camera_as_acquired, operations
 from ..products import ProductPart
 from ..protocol import BadRequest
 from ..rasters import read_geotiff
-from ..toolbox.geometry import RoverPose
-from ..toolbox.localisation import merge_clouds
-from ..toolbox.grid import GridSpec
-from ..toolbox.planning import (DrivablePrefix, MapLayers, PlanningParams, PlanResult, blank_map_spanning,
+from toolbox.geometry import RoverPose
+from toolbox.mapping.localisation import merge_clouds
+from toolbox.grid import GridSpec
+from toolbox.planning import (DrivablePrefix, MapLayers, PlanningParams, PlanResult, blank_map_spanning,
                                 drivable_prefix, fuse_nearest, holes_on_path, keep_route, nearest_open_cell,
                                 outside_box, plan_path, plan_through_unconfirmed, short_of_first_touch,
                                 with_hazards, with_unknown)
-from ..toolbox.planning_drive_error import cut_for_drive_error
-from ..toolbox.planning_paths import path_length
+from toolbox.planning.drive_error import cut_for_drive_error
+from toolbox.planning.paths import path_length
 from ..workflow import WorkflowError, resolve_params, run_workflow
 from .mapping import MappingSettings, NavigateArgs, check_workflow, write_maps
 from .navigate_pictures import write_traverse

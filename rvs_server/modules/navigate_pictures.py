@@ -16,9 +16,9 @@ import cv2
 import numpy as np
 
 from ..rasters import write_png
-from ..toolbox.colour import categorical, colourise, with_key, with_title
-from ..toolbox.grid import GridSpec
-from ..toolbox.planning import MapLayers
+from toolbox.colour import categorical, colourise, with_key, with_title
+from toolbox.grid import GridSpec
+from toolbox.planning import MapLayers
 from .grid_canvas import Canvas as GridCanvas
 
 PICTURE_SIZE = 720

@@ -25,11 +25,11 @@ from ..files import atomic_file
 from ..jobs import JobContext
 from ..protocol import BadRequest, Timeout, WrongMode
 from ..rasters import read_geotiff, write_geotiff, write_png
-from ..toolbox.colour import colourise, with_colour_bar, with_title
-from ..toolbox.geometry import RoverPose
-from ..toolbox.grid import GridSpec
-from ..toolbox.hazard import HAZARD, UNKNOWN
-from ..toolbox.planning import (MapLayers, PlanningParams, blank_map_spanning, cells_to_world, distance_to_border,
+from toolbox.colour import colourise, with_colour_bar, with_title
+from toolbox.geometry import RoverPose
+from toolbox.grid import GridSpec
+from toolbox.mapping.hazard import HAZARD, UNKNOWN
+from toolbox.planning import (MapLayers, PlanningParams, blank_map_spanning, cells_to_world, distance_to_border,
                                 drivable_prefix, enclosed_unknown, fuse_maps, inside_box, outside_box, plan_path,
                                 terrain_cost, with_hazards)
 from .grid_canvas import Canvas

@@ -34,10 +34,10 @@ from ..jobs import JobContext
 from ..protocol import BadRequest, DeviceError, WrongMode
 from ..rasters import write_png
 from ..routes_store import Action, RouteStore, RouteStoreConfig, RouteStoreError
-from ..toolbox.colour import with_title
-from ..toolbox.routes_follow import FollowParams, FollowReport, Leg, RouteFollower
-from ..toolbox.routes_match import MATCHER_NAMES, rank_route
-from ..toolbox.routes_network import NetworkLeg, NetworkLink, Segment, shortest_way
+from toolbox.colour import with_title
+from toolbox.routes.follow import FollowParams, FollowReport, Leg, RouteFollower
+from toolbox.routes.match import MATCHER_NAMES, rank_route
+from toolbox.routes.network import NetworkLeg, NetworkLink, Segment, shortest_way
 from .routes_rover import RouteRover, check_rover
 
 Matcher = Literal["features", "contour"]

@@ -24,8 +24,8 @@ from drivers.sim.motion import dead_reckon
 from ..jobs import JobContext
 from ..mapping_ops import point_ptu, stereo_intrinsics
 from ..protocol import BadRequest, DeviceError
-from ..toolbox.geometry import RoverPose
-from ..toolbox.routes_match import PlaceMatcher, grey_image
+from toolbox.geometry import RoverPose
+from toolbox.routes.match import PlaceMatcher, grey_image
 from .navigation import wait_for_pose
 
 FORWARD_CAMERA_MISSING = ("routes: camera \"forward\" is the simulated rover's body-fixed camera and the devices are "

@@ -27,8 +27,8 @@ from scipy.ndimage import binary_dilation
 
 REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO))
-from rvs_server.toolbox import planning_search  # noqa: E402
-from rvs_server.toolbox.planning_search import SQRT2, astar, cost_per_metre, path_cost  # noqa: E402
+from toolbox.planning import search as planning_search  # noqa: E402
+from toolbox.planning.search import SQRT2, astar, cost_per_metre, path_cost  # noqa: E402
 
 
 def cost_grid(size: int, seed: int) -> np.ndarray:

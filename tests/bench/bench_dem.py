@@ -20,8 +20,8 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-from rvs_server.toolbox import dem as D  # noqa: E402
-from rvs_server.toolbox.grid import GridSpec  # noqa: E402
+from toolbox.mapping import dem as D  # noqa: E402
+from toolbox.grid import GridSpec  # noqa: E402
 
 SPEC = GridSpec(-10.0, -10.0, 0.02, 1000, 1000)
 

@@ -21,7 +21,7 @@ import numpy as np
 from scipy import ndimage
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-from rvs_server.toolbox import hazard as H  # noqa: E402
+from toolbox.mapping import hazard as H  # noqa: E402
 
 CELL = 0.02
 SIZE = 1000

@@ -26,12 +26,12 @@ from scipy.spatial.transform import Rotation
 
 REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO))
-from rvs_server.toolbox.hopping_ballistics import hop_range, landing_error_ellipse  # noqa: E402
-from rvs_server.toolbox.hopping_icp import (align_with_overlap_elimination, apply_transform,  # noqa: E402
+from toolbox.hopping.ballistics import hop_range, landing_error_ellipse  # noqa: E402
+from toolbox.hopping.icp import (align_with_overlap_elimination, apply_transform,  # noqa: E402
                                             estimate_normals, icp_point_to_plane, icp_point_to_point,
                                             transform_change)
-from rvs_server.toolbox.hopping_landing import LandingParams, plan_landing  # noqa: E402
-from rvs_server.toolbox.hopping_parabola import ballistic_design, fit_flight, fit_flight_paper  # noqa: E402
+from toolbox.hopping.landing import LandingParams, plan_landing  # noqa: E402
+from toolbox.hopping.parabola import ballistic_design, fit_flight, fit_flight_paper  # noqa: E402
 
 G = 1.62
 

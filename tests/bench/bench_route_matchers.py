@@ -39,7 +39,7 @@ from drivers.sim.render import PinholeCamera, render  # noqa: E402
 from drivers.sim.rover import Rover  # noqa: E402
 from drivers.sim.world import World  # noqa: E402
 from rvs_server.routes_store import Action, RouteStore, RouteStoreConfig  # noqa: E402
-from rvs_server.toolbox.routes_match import (ContourConfig, ContourMatcher, FeatureMatcher,  # noqa: E402
+from toolbox.routes.match import (ContourConfig, ContourMatcher, FeatureMatcher,  # noqa: E402
                                              heading_offset, rank_route)
 
 CAMERA = PinholeCamera.from_fov(640, 480, 60.0)

@@ -35,8 +35,8 @@ sys.path.insert(0, str(REPO))
 from conftest import ServerProcess, pairs  # noqa: E402
 from drivers.sim.config import WorldConfig  # noqa: E402
 from drivers.sim.world import World  # noqa: E402
-from rvs_server.toolbox.grid import GridSpec  # noqa: E402
-from rvs_server.toolbox.planning import MapLayers, PlanningParams, plan_path  # noqa: E402
+from toolbox.grid import GridSpec  # noqa: E402
+from toolbox.planning import MapLayers, PlanningParams, plan_path  # noqa: E402
 
 CLEARANCE_M = 0.4        # a way for the rover's radius 0.3 m plus 0.1 m: navigate plans with a 0.05 m margin,
                          # so a goal counts as reachable only with room to spare

@@ -40,8 +40,8 @@ sys.path.insert(0, str(REPO))
 from conftest import ServerProcess, pairs  # noqa: E402
 from drivers.sim.config import WorldConfig  # noqa: E402
 from drivers.sim.world import World  # noqa: E402
-from rvs_server.toolbox.grid import GridSpec  # noqa: E402
-from rvs_server.toolbox.planning import (MapLayers, PlanningParams, cells_to_world, inflate_hazards,  # noqa: E402
+from toolbox.grid import GridSpec  # noqa: E402
+from toolbox.planning import (MapLayers, PlanningParams, cells_to_world, inflate_hazards,  # noqa: E402
                                          plan_path, segment_is_clear)
 
 SIZE_M = 50.0

@@ -3,13 +3,13 @@ structure from motion, become a metric map, a corrected position and the next la
 
 `process_hop` is the paper's chain (Fig 3), step by step; the steps live in small modules:
 
-    hopping_parabola    scale and gravity from the parabolic flight (eqs 1-13), the paper's fit and the
+    parabola            scale and gravity from the parabolic flight (eqs 1-13), the paper's fit and the
                         timed fit used by default
-    hopping_icp         position correction: ICP with iterative elimination of non-overlapping parts
-    hopping_landing     landing target selection on the top-down image: obstacles, error ellipses,
+    icp                 position correction: ICP with iterative elimination of non-overlapping parts
+    landing             landing target selection on the top-down image: obstacles, error ellipses,
                         clearance and goal maps, the collision check along the parabola
-    hopping_ballistics  range equation, error ellipse (eqs 14-16), inverse ballistics, flight path
-    hopping_plane       RANSAC planes (flight plane, ground plane)
+    ballistics          range equation, error ellipse (eqs 14-16), inverse ballistics, flight path
+    plane               RANSAC planes (flight plane, ground plane)
 
 Frames: SfM (arbitrary scale and axes) -> hop frame (metres, launch at the origin, z up, x along the
 hop) -> world (x east, y north, z up) by the hop's heading from the sun sensor and the launch position.
@@ -20,20 +20,20 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .geometry import apply, compose, rigid, rotation_z
-from .hopping_ballistics import (CHI2_2D_95, Launch, LandingEllipse, ballistic_positions, elevation_for_target,
+from toolbox.geometry import apply, compose, rigid, rotation_z
+from toolbox.hopping.ballistics import (CHI2_2D_95, Launch, LandingEllipse, ballistic_positions, elevation_for_target,
                                  hop_range, landing_error_ellipse, launch_to_target, speed_for_target)
-from .hopping_icp import (IcpRound, OverlapAlignment, align_with_overlap_elimination, common_bounds, crop_mask,
+from toolbox.hopping.icp import (IcpRound, OverlapAlignment, align_with_overlap_elimination, common_bounds, crop_mask,
                           estimate_normals, horizontal_bounds, icp_point_to_plane, icp_point_to_point,
                           icp_yaw_translation, transform_change)
-from .hopping_landing import (LandingParams, LandingPlan, NoGroundError, TopDown, clearance_map, ellipse_safe_mask, goal_map,
+from toolbox.hopping.landing import (LandingParams, LandingPlan, NoGroundError, TopDown, clearance_map, ellipse_safe_mask, goal_map,
                               ground_plane, known_mask, obstacle_mask, plan_landing, protrusion_map,
                               selection_score, swept_height, top_down_maps, trajectory_collides)
-from .hopping_parabola import (MOON_GRAVITY, FlightFit, centre_of_mass_positions, conic_axis_angle,
+from toolbox.hopping.parabola import (MOON_GRAVITY, FlightFit, centre_of_mass_positions, conic_axis_angle,
                                drop_beyond_mean_distance, fit_conic_through_origin, fit_flight, fit_flight_paper,
                                fit_parabola, orient_parabola, parabola_closest_x, parabola_distance,
                                scale_from_parabola)
-from .hopping_plane import Plane, fit_plane_lsq, plane_basis, ransac_plane
+from toolbox.hopping.plane import Plane, fit_plane_lsq, plane_basis, ransac_plane
 
 __all__ = [
     "process_hop", "HopResult", "hop_to_world",

@@ -20,8 +20,8 @@ from typing import Sequence
 import numpy as np
 from scipy.ndimage import binary_fill_holes, label
 
-from .grid import GridSpec
-from .planning_paths import mask_near_path
+from toolbox.grid import GridSpec
+from toolbox.planning.paths import mask_near_path
 
 # Overlaps thinner than this fraction of a cell are shared edges, not coverage.
 EDGE_TOLERANCE = 1e-9

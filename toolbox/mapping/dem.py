@@ -24,8 +24,8 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
-from .geometry import apply
-from .grid import GridSpec
+from toolbox.geometry import apply
+from toolbox.grid import GridSpec
 
 # A cell boundary within this fraction of a cell counts as exact when DEMs are aligned for a mosaic.
 ALIGNMENT_TOLERANCE = 1e-6

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .grid import GridSpec
+from toolbox.grid import GridSpec
 
 
 @dataclass(frozen=True)

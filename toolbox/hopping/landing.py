@@ -37,11 +37,11 @@ import numpy as np
 from scipy.ndimage import binary_erosion, distance_transform_edt
 from scipy.spatial import cKDTree
 
-from .grid import GridSpec
-from .hopping_ballistics import CHI2_2D_95, Launch, LandingEllipse, ballistic_positions, landing_error_ellipse, \
+from toolbox.grid import GridSpec
+from toolbox.hopping.ballistics import CHI2_2D_95, Launch, LandingEllipse, ballistic_positions, landing_error_ellipse, \
     launch_to_target, speed_for_target
-from .hopping_parabola import MOON_GRAVITY
-from .hopping_plane import Plane, ransac_plane
+from toolbox.hopping.parabola import MOON_GRAVITY
+from toolbox.hopping.plane import Plane, ransac_plane
 
 
 class NoGroundError(ValueError):

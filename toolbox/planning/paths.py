@@ -19,7 +19,7 @@ from typing import Callable
 import numpy as np
 from scipy.ndimage import distance_transform_edt
 
-from .grid import GridSpec
+from toolbox.grid import GridSpec
 
 # Crossings of a cell shorter than this (in segment parameter) are corner touches, not crossings.
 TOUCH_TOLERANCE = 1e-9

@@ -29,8 +29,8 @@ from typing import Protocol
 
 import numpy as np
 
-from .grid import GridSpec
-from .planning_paths import DrivablePrefix, world_to_cells
+from toolbox.grid import GridSpec
+from toolbox.planning.paths import DrivablePrefix, world_to_cells
 
 
 class DriveErrorModel(Protocol):

@@ -49,7 +49,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .hopping_plane import Plane, plane_basis, ransac_plane
+from toolbox.hopping.plane import Plane, plane_basis, ransac_plane
 
 MOON_GRAVITY = 1.62  # m/s^2
 # Median of the norm of 3-D isotropic Gaussian noise (Maxwell distribution) in units of the per-axis sigma.

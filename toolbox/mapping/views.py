@@ -26,7 +26,7 @@ import math
 
 import numpy as np
 
-from .geometry import direction_of
+from toolbox.geometry import direction_of
 
 FULL_CIRCLE = 2 * math.pi
 ANGLE_TOLERANCE = 1e-9

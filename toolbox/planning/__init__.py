@@ -4,11 +4,11 @@
 give unknown cells their policy's cost, search the exact least-cost path with A*, and cut it into
 straight segments that keep clear of hazards. The steps live in small modules:
 
-    planning_costs   terrain cost, hazard inflation, soft cost near hazards, unknown-cell policy
-    planning_search  the path metric, A* and its Dijkstra reference
-    planning_fusion  planning maps and the fusion of a global map with local maps
-    planning_paths   world <-> cells, straight segments, the drivable part inside the local map
-    planning_drive_error  how far the rover may drive before its drive error could reach a hazard
+    costs            terrain cost, hazard inflation, soft cost near hazards, unknown-cell policy
+    search           the path metric, A* and its Dijkstra reference
+    fusion           planning maps and the fusion of a global map with local maps
+    paths            world <-> cells, straight segments, the drivable part inside the local map
+    drive_error      how far the rover may drive before its drive error could reach a hazard
 
 Fusing the maps comes before `plan_path` and cutting the path at the local map's border after it;
 the navigate loop calls them.
@@ -20,16 +20,16 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.ndimage import label
 
-from .grid import GridSpec
-from .planning_costs import (UNKNOWN_POLICIES, InflatedHazards, UnknownPolicy, apply_unknown_policy,
+from toolbox.grid import GridSpec
+from toolbox.planning.costs import (UNKNOWN_POLICIES, InflatedHazards, UnknownPolicy, apply_unknown_policy,
                              inflate_hazards, proximity_cost, terrain_cost)
-from .planning_fusion import (FusedLayers, MapLayers, blank_map, blank_map_spanning, enclosed_unknown, fuse_maps,
+from toolbox.planning.fusion import (FusedLayers, MapLayers, blank_map, blank_map_spanning, enclosed_unknown, fuse_maps,
                               fuse_nearest, holes_on_path, inside_box, outside_box, resample_onto, with_hazards,
                               with_unknown)
-from .planning_paths import (DrivablePrefix, cells_to_world, distance_to_border, douglas_peucker,
+from toolbox.planning.paths import (DrivablePrefix, cells_to_world, distance_to_border, douglas_peucker,
                              drivable_prefix, first_touch, path_length, segment_cells, segment_is_clear,
                              short_of_first_touch, simplify_path, world_to_cells, world_to_grid)
-from .planning_search import SearchResult, astar, cost_per_metre, dijkstra_reference, path_cost
+from toolbox.planning.search import SearchResult, astar, cost_per_metre, dijkstra_reference, path_cost
 
 __all__ = [
     "PlanningParams", "PlanResult", "plan_path", "planning_cost", "polyline_cost", "keep_route",

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .hopping_parabola import MOON_GRAVITY
+from toolbox.hopping.parabola import MOON_GRAVITY
 
 CHI2_2D_95 = 2.4477  # sqrt of the 95 % quantile of chi-square with 2 dof: a 95 % ellipse in sigmas
 

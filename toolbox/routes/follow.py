@@ -32,7 +32,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Any, Callable, Protocol, Sequence
 
-from .routes_match import MatchResult, PlaceMatcher, heading_offset
+from toolbox.routes.match import MatchResult, PlaceMatcher, heading_offset
 
 
 class RouteRover(Protocol):

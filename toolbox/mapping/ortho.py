@@ -21,8 +21,8 @@ from typing import Sequence
 import numpy as np
 import open3d as o3d
 
-from .geometry import Intrinsics, apply, invert, project
-from .grid import GridSpec
+from toolbox.geometry import Intrinsics, apply, invert, project
+from toolbox.grid import GridSpec
 
 # Metres a cell may lie behind the surface that hides it and still count as seen (range noise, the
 # DEM's own height error, rays grazing the cell's neighbouring facets).
