@@ -21,9 +21,11 @@ import cv2
 import numpy as np
 import pytest
 
-from drivers.avt import (CameraError, CameraSettings, CameraTimeout, EmulatedCamera, PIKE_F210B_SENSOR,
-                         SettingsError, StereoCameras, VimbaCamera, emulated_stereo_pair,
+from drivers.avt import (CameraError, CameraSettings, CameraTimeout, PIKE_F210B_SENSOR, SettingsError,
                          intrinsics_per_mode)
+from drivers.avt_emulator import EmulatedCamera, emulated_stereo_pair
+from drivers.avt_stereo import StereoCameras
+from drivers.avt_vimba import VimbaCamera
 from drivers.errors import DeviceFault, DeviceTimeout
 from drivers.sim.clock import SimClock
 from drivers.sim.config import Sun
@@ -633,7 +635,7 @@ def test_vimba_backend_sets_the_trigger_and_features_and_grabs_on_a_pulse(monkey
     devices = [FakeVimbaCamera("DEV_A", trigger),
                FakeVimbaCamera("DEV_B", trigger, exposure_name="ExposureTimeAbs")]
     monkeypatch.setitem(sys.modules, "vmbpy", fake_vmbpy(devices))
-    from drivers.avt import vimba_stereo_pair
+    from drivers.avt_vimba import vimba_stereo_pair
     pair = vimba_stereo_pair(trigger, default_settings=LOW.with_changes(exposure_us=2500.0, gain_db=2.0))
     pair.open()
     assert pair.ids() == ("DEV_A", "DEV_B")

@@ -16,17 +16,16 @@ from hypothesis import strategies as st
 
 from drivers.errors import DeviceFault, DeviceTimeout
 from drivers.ptu import (
-    D46_RESOLUTION_ARCSEC,
     PtuCommandError,
     PtuD46,
-    PtuEmulator,
     PtuLimitHit,
     PtuNotResponding,
     PtuPositionError,
     PtuSpeedError,
     PtuTimeout,
-    plan_move,
 )
+from drivers.ptu_emulator import D46_RESOLUTION_ARCSEC, PtuEmulator
+from drivers.ptu_motion import plan_move
 from drivers.serial_emulation import make_raw
 from drivers.sim.clock import SimClock
 from drivers.sim.faults import FaultSwitch

@@ -11,7 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from drivers.avt import sensor_image
+from drivers.avt_sensor import sensor_image
 from drivers.sim.config import Sun, WorldConfig
 from drivers.sim.render import PinholeCamera, render
 from drivers.sim.rover import Rover

@@ -16,7 +16,8 @@ import math
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from drivers.avt import CameraSettings, auto_exposure_us, sensor_image
+from drivers.avt import CameraSettings
+from drivers.avt_sensor import auto_exposure_us, sensor_image
 from drivers.sim.render import PinholeCamera, render
 from drivers.sim.rover import CAMERA_AXES_IN_HEAD, Rover, rotation_y
 

@@ -23,7 +23,8 @@ import math
 
 import numpy as np
 
-from drivers.avt import CameraSettings, auto_exposure_us, sensor_image
+from drivers.avt import CameraSettings
+from drivers.avt_sensor import auto_exposure_us, sensor_image
 
 from . import hopper_flight as flight
 from .hopper_config import HopperConfig

@@ -65,7 +65,9 @@ class StereoDevice(SensorDevice):
         return "; ".join(broken) or None
 
     def _make(self) -> None:
-        from drivers.avt import CameraSettings, emulated_stereo_pair, vimba_stereo_pair
+        from drivers.avt import CameraSettings
+        from drivers.avt_emulator import emulated_stereo_pair
+        from drivers.avt_vimba import vimba_stereo_pair
         from drivers.trigger import PpdevTrigger
         c = self.config
         settings = CameraSettings.load(c.settings_file) if c.settings_file else CameraSettings()

@@ -50,7 +50,8 @@ class PtuDevice(Device):
         if not self.config.enabled:
             self.health = "off"
             return
-        from drivers.ptu import PtuD46, PtuEmulator
+        from drivers.ptu import PtuD46
+        from drivers.ptu_emulator import PtuEmulator
         try:
             if self.config.backend == "sim":
                 if self.emulator is None:

@@ -18,7 +18,8 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO))
-from drivers.avt import CameraSettings, emulated_stereo_pair  # noqa: E402
+from drivers.avt import CameraSettings  # noqa: E402
+from drivers.avt_emulator import emulated_stereo_pair  # noqa: E402
 from drivers.sim.clock import SimClock  # noqa: E402
 from drivers.sim.config import WorldConfig  # noqa: E402
 from drivers.sim.render import render  # noqa: E402
