@@ -28,13 +28,13 @@ from drivers.sim.clock import SimClock
 from drivers.sim.config import WorldConfig
 
 from . import __version__
-from .calibration import Calibration, CalibrationConfig, build_calibration
+from rvs_server.devices.calibration import Calibration, CalibrationConfig, build_calibration
 from .config import ConfigError, Settings, load_model, read_toml, validate_section
 from .devices import Devices, DevicesConfig
 from .dispatch import CommandSpec, Dispatcher, Module, Registry, Session
 from .files import remove_stale_temporaries
 from .jobs import JobCounter, RecoveryStore
-from .products import Products
+from rvs_server.products.manifests import Products
 from toolbox.geometry import RoverPose
 from .protocol import BadRequest
 from .transports.tcp import claim_tcp_port, start_tcp
@@ -89,8 +89,7 @@ def read_configuration(config_dir: Path, overrides: Mapping[str, Any], modules: 
 
 
 def all_modules() -> list[Module]:
-    from .modules import hopping, imaging, mapping, navigate, navigation, ptu, routes, simulation, system
-    assert navigate.module is navigation.module  # navigate registers its command on navigation's module
+    from rvs_server import hopping, imaging, mapping, navigation, ptu, routes, simulation, system
     return [system.module, ptu.module, imaging.module, mapping.module, navigation.module, hopping.module,
             routes.module, simulation.module]
 

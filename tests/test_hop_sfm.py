@@ -15,7 +15,7 @@ import pytest
 from drivers.sim.config import WorldConfig
 from drivers.sim.hopper import Hopper, HopperConfig, HopRecord
 from drivers.sim.world import World
-from rvs_server import hop_sfm
+from rvs_server.hopping import sfm as hop_sfm
 from toolbox.geometry import Intrinsics, project, rotation_x, rotation_y
 from toolbox.hopping import process_hop
 

@@ -19,7 +19,7 @@ import pytest
 from conftest import SMALL_WORLD, pairs
 from drivers.sim.config import WorldConfig
 from drivers.sim.world import World
-from rvs_server.modules.hopping_store import read_ply
+from rvs_server.hopping.store import read_ply
 
 HOPPING = """sfm_threads = 1   # repeatable reconstructions: COLMAP's threads finish in varying order
 [hopper.camera]

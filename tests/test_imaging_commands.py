@@ -7,7 +7,7 @@ import numpy as np
 import tifffile
 
 from conftest import pairs
-from rvs_server.rasters import read_png
+from rvs_server.products.rasters import read_png
 
 
 def test_grab_tof_writes_raw_values_a_picture_and_the_truth(server):

@@ -195,8 +195,8 @@ def test_the_rover_stops_to_look_at_unknown_ground_before_it_drives_there(server
     no look can show what is there, and a rock's shadow can hide another rock: the first drive ends
     1.4 m (the blind ring and the border margin) short of the unknown ground its way crosses, and
     PROGRESS says why."""
-    from rvs_server.modules.navigation import NavigationSettings
-    from rvs_server.rasters import read_geotiff
+    from rvs_server.navigation.commands import NavigationSettings
+    from rvs_server.products.rasters import read_geotiff
     from toolbox.mapping.hazard import UNKNOWN
     goal = (-4.3, 0.0)
     server = server_factory(configs={"navigation.toml": "drive_error_sigmas = 0\n",

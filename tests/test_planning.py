@@ -560,7 +560,7 @@ def test_holes_walled_in_by_seen_ground_become_hazards_but_not_the_outside_the_s
 
 def test_holes_are_hazards_for_stereo_and_stay_unknown_for_tof_by_default():
     """navigation.toml holes: stereo's holes are often rocks it could not match, TOF's occlusion shadows."""
-    from rvs_server.modules.navigation import NavigationSettings, holes_as_hazards
+    from rvs_server.navigation.commands import NavigationSettings, holes_as_hazards
     from toolbox.geometry import RoverPose
     spec = GridSpec(0.0, 0.0, 0.1, 30, 30)
     unknown = np.zeros(spec.shape, bool)
@@ -578,7 +578,7 @@ def test_unknown_ground_is_to_look_at_until_a_look_from_close_by_has_seen_into_i
     """look_first: unknown ground is to look at until a look from within close_look_m (beyond the
     blind ring) has seen into it; what is left then is a shadow. Nor is ground beside the rover, in
     its blind ring: no look from there can see it, and stopping for it would stall the rover."""
-    from rvs_server.modules.navigation import NavigationSettings, unlooked_ground
+    from rvs_server.navigation.commands import NavigationSettings, unlooked_ground
     from toolbox.geometry import RoverPose
     spec = GridSpec(0.0, 0.0, 0.05, 120, 120)             # 6 x 6 m
     unknown = np.zeros(spec.shape, bool)
@@ -706,7 +706,7 @@ def test_a_blocked_goal_is_approached_at_the_nearest_open_cell_a_path_can_reach(
 
 def test_the_hazard_margin_is_per_sensor_and_one_value_serves_both():
     """The margin covers a map's error at a rock's edge, which is the sensor's: each may have its own."""
-    from rvs_server.modules.navigation import NavigationSettings, planning_params
+    from rvs_server.navigation.commands import NavigationSettings, planning_params
     settings = NavigationSettings(hazard_margin_m={"tof": 0.05, "stereo": 0.1})
     assert planning_params(settings, None, "tof").clearance_m == pytest.approx(0.35)
     assert planning_params(settings, None, "stereo").clearance_m == pytest.approx(0.40)

@@ -33,12 +33,12 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO))
-from drivers.avt import sensor_image  # noqa: E402
+from drivers.avt_sensor import sensor_image  # noqa: E402
 from drivers.sim.config import Sun, WorldConfig  # noqa: E402
 from drivers.sim.render import PinholeCamera, render  # noqa: E402
 from drivers.sim.rover import Rover  # noqa: E402
 from drivers.sim.world import World  # noqa: E402
-from rvs_server.routes_store import Action, RouteStore, RouteStoreConfig  # noqa: E402
+from rvs_server.routes.store import Action, RouteStore, RouteStoreConfig  # noqa: E402
 from toolbox.routes.match import (ContourConfig, ContourMatcher, FeatureMatcher,  # noqa: E402
                                              heading_offset, rank_route)
 

@@ -29,7 +29,7 @@ sys.path.insert(0, str(REPO / "tests"))
 sys.path.insert(0, str(REPO))
 import conftest  # noqa: E402
 from conftest import ServerProcess, pairs  # noqa: E402
-from rvs_server.rasters import read_geotiff  # noqa: E402
+from rvs_server.products.rasters import read_geotiff  # noqa: E402
 
 REACH_M = {"tof": 4.5, "stereo": 4.5}  # the same disc for both, inside both sensors' range
 

@@ -4,7 +4,7 @@ selection, collision check).
 
 `plan_landing` is the method, step by step, each a small function:
     top_down_maps          the cloud projected to a grid: highest point, mean colour, point count
-    ground_plane           RANSAC plane under the cloud (hopping_plane)
+    ground_plane           RANSAC plane under the cloud (plane)
     protrusion_map         each cell's highest point above that plane
     obstacle_mask          protrusion over a threshold, then median filter and closing (paper: 8 cm)
     known_mask             cells with data, small holes closed by a median filter

@@ -9,7 +9,7 @@ Two fits, same output (`FlightFit`, the similarity from the SfM frame to the met
 
 `fit_flight_paper` is the paper's chain, one function per step:
     centre_of_mass_positions  eq 1   camera centres -> centre of mass
-    ransac_plane              --     the flight plane (hopping_plane)
+    ransac_plane              --     the flight plane (plane)
     to_flight_plane           --     project into the plane, first camera at the origin
     fit_conic_through_origin  eq 2-5 least-squares conic, F = 0, smallest eigenvector
     conic_axis_angle          eq 6   rotation that removes the conic's xy term

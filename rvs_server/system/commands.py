@@ -8,12 +8,12 @@ from typing import Any
 
 from pydantic import Field
 
-from .. import __version__
-from ..config import CommandConfig, describe_allowed, describe_default, option_name, type_label
-from ..dispatch import Call, Module, Request
-from ..files import atomic_path
-from ..jobs import UnreadableRecoverySet
-from ..protocol import (EVENT_TOPICS, BadRequest, DeviceError, RvsError, Timeout, Unauthorized, WrongMode,
+from rvs_server import __version__
+from rvs_server.config import CommandConfig, describe_allowed, describe_default, option_name, type_label
+from rvs_server.dispatch import Call, Module, Request
+from rvs_server.files import atomic_path
+from rvs_server.jobs import UnreadableRecoverySet
+from rvs_server.protocol import (EVENT_TOPICS, BadRequest, DeviceError, RvsError, Timeout, Unauthorized, WrongMode,
                         parse_line)
 
 module = Module("system", summary="modes, jobs, help, status, logs, authentication")
@@ -46,7 +46,7 @@ def status(call: Call, cfg: Any) -> dict[str, Any]:
 @module.immediate("version", open_without_auth=True)
 def version(call: Call, cfg: Any) -> dict[str, Any]:
     """The server's software and protocol versions."""
-    from ..protocol import PROTOCOL_VERSION
+    from rvs_server.protocol import PROTOCOL_VERSION
     return {"version": __version__, "protocol": PROTOCOL_VERSION}
 
 
@@ -94,7 +94,7 @@ def check(call: Call, tokens: tuple[str, ...]) -> dict[str, Any]:
 
 
 def _requote(token: str) -> str:
-    from ..protocol import quote_token
+    from rvs_server.protocol import quote_token
     return quote_token(token)
 
 

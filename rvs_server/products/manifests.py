@@ -17,9 +17,9 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 
-from . import __version__
-from .files import write_json_atomic
-from .protocol import BadRequest, check_safe_name
+from rvs_server import __version__
+from rvs_server.files import write_json_atomic
+from rvs_server.protocol import BadRequest, check_safe_name
 
 
 class Product:

@@ -14,9 +14,9 @@ from pydantic import Field
 
 from drivers.sim.faults import FAULT_DEVICES
 
-from ..config import CommandConfig
-from ..dispatch import Call, Module
-from ..protocol import BadRequest, WrongMode
+from rvs_server.config import CommandConfig
+from rvs_server.dispatch import Call, Module
+from rvs_server.protocol import BadRequest, WrongMode
 
 module = Module("simulation", summary="the simulated world: injected device faults")
 

@@ -15,17 +15,17 @@ from typing import Any
 import numpy as np
 from pydantic import Field
 
-from ..config import CommandConfig, Range, SafeName, Settings
-from ..dispatch import Module
-from ..files import atomic_file
-from ..jobs import JobContext
-from ..mapping_ops import operations
-from ..protocol import BadRequest
-from ..rasters import write_geotiff, write_png
+from rvs_server.config import CommandConfig, Range, SafeName, Settings
+from rvs_server.dispatch import Module
+from rvs_server.files import atomic_file
+from rvs_server.jobs import JobContext
+from rvs_server.mapping.steps import operations
+from rvs_server.protocol import BadRequest
+from rvs_server.products.rasters import write_geotiff, write_png
 from toolbox.colour import categorical, colourise, upscale, with_colour_bar, with_key, with_title
 from toolbox.grid import GridSpec
 from toolbox.mapping.hazard import HAZARD, ROUGHNESS, SLOPE, STEP, UNKNOWN
-from ..workflow import WorkflowError, load_workflow, resolve_params, run_workflow
+from rvs_server.workflow import WorkflowError, load_workflow, resolve_params, run_workflow
 
 
 class MappingSettings(Settings):

@@ -17,7 +17,7 @@ from toolbox.colour import NO_DATA_RGB, colourise, upscale, with_colour_bar, wit
 from toolbox.geometry import apply, invert
 from toolbox.grid import GridSpec
 from toolbox.hopping import LandingPlan, top_down_maps
-from .hopping_estimate import HopEstimate, flight_positions
+from rvs_server.hopping.estimate import HopEstimate, flight_positions
 
 HOP_COLOURS = [(230, 25, 75), (60, 180, 75), (255, 225, 25), (0, 130, 200), (245, 130, 48), (145, 30, 180),
                (70, 240, 240), (240, 50, 230), (210, 245, 60), (250, 190, 212)]

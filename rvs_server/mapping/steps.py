@@ -13,7 +13,7 @@ from typing import Any, Callable, Literal
 import numpy as np
 from pydantic import Field
 
-from .config import Range
+from rvs_server.config import Range
 from toolbox.mapping import dem as dem_tools
 from toolbox.mapping import hazard as hazard_tools
 from toolbox.geometry import Intrinsics, RoverPose, camera_to_world, footprint_polygon, relative_pose
@@ -21,7 +21,7 @@ from toolbox.mapping.localisation import AlignConfig, align_to_map, apply
 from toolbox.mapping.ortho import merge_views, ortho_image
 from toolbox.mapping.stereo import SgbmConfig, StereoCalibration, rectification, stereo_points
 from toolbox.mapping.views import plan_views
-from .workflow import Operations, StepContext, StepParams
+from rvs_server.workflow import Operations, StepContext, StepParams
 
 operations = Operations()
 
@@ -315,14 +315,14 @@ class MergeParams(StepParams):
 @operations.register("dem.merge_last", MergeParams, inputs=("dem",))
 def merge_last(step: StepContext, params: MergeParams, dem: dict) -> dict[str, Any]:
     """Mosaic the new DEM with the last DEM product (more points per cell wins where they overlap)."""
-    from .rasters import read_geotiff
+    from rvs_server.products.rasters import read_geotiff
     pattern = {"tof": "dem-(full|update)-tof", "stereo": "dem-(full|update)", "any": "dem-.*"}[params.sensor]
     last = step.job.server.products.latest(pattern)
     if last is None:
         return {**dem, "merged_with": ""}
     heights, spec = read_geotiff(last.path / "dem.tif")
     counts_path = last.path / "counts.tif"
-    from .rasters import read_geotiff as read
+    from rvs_server.products.rasters import read_geotiff as read
     counts = read(counts_path)[0].astype(np.int32) if counts_path.exists() else np.isfinite(heights).astype(np.int32)
     merged = dem_tools.mosaic([dem_tools.Dem(spec, heights.astype(np.float32), counts),
                                dem_tools.Dem(dem["spec"], dem["heights"], dem["counts"])])

@@ -11,10 +11,10 @@ from typing import Any
 
 from pydantic import Field
 
-from ..config import CommandConfig, Settings
-from ..dispatch import Module
-from ..jobs import JobContext, JobInterrupted
-from ..protocol import BadRequest, Timeout
+from rvs_server.config import CommandConfig, Settings
+from rvs_server.dispatch import Module
+from rvs_server.jobs import JobContext, JobInterrupted
+from rvs_server.protocol import BadRequest, Timeout
 
 
 class PtuSettings(Settings):

@@ -24,7 +24,7 @@ all 8 (tests/bench/measure_hopping.py for the campaigns). No setting is immune, 
 single-hop campaign global mapping bent 2 of 32 hops. The incremental mapper at SIFT octave -1
 reconstructed one of them well; every setting bent the other (launched rolled 35 degrees off a rock,
 half of each frame sky). hop-plan therefore checks every reconstruction's flight and tries the next
-setting of hopping.toml's sfm_fallbacks while it is not clean (modules/hopping_plan.py).
+setting of hopping.toml's sfm_fallbacks while it is not clean (hopping/plan.py).
 
 `densify` replaces COLMAP's PatchMatch MVS, which pycolmap runs only with CUDA ("Dense stereo
 reconstruction requires CUDA or HIP"). Why two-view SGBM on chosen pairs:

@@ -12,10 +12,10 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import Field
 
-from ..config import CommandConfig, SafeName, Settings
-from ..dispatch import Module
-from ..jobs import JobContext
-from ..rasters import write_png, write_tiff
+from rvs_server.config import CommandConfig, SafeName, Settings
+from rvs_server.dispatch import Module
+from rvs_server.jobs import JobContext
+from rvs_server.products.rasters import write_png, write_tiff
 from toolbox.colour import colourise, upscale, with_colour_bar, with_title
 
 

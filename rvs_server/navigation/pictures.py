@@ -15,11 +15,11 @@ from typing import Any
 import cv2
 import numpy as np
 
-from ..rasters import write_png
+from rvs_server.products.rasters import write_png
 from toolbox.colour import categorical, colourise, with_key, with_title
 from toolbox.grid import GridSpec
 from toolbox.planning import MapLayers
-from .grid_canvas import Canvas as GridCanvas
+from rvs_server.products.canvas import Canvas as GridCanvas
 
 PICTURE_SIZE = 720
 WHITE, YELLOW, MAGENTA, GREEN, CYAN = (255, 255, 255), (250, 210, 40), (255, 60, 255), (60, 230, 60), (0, 230, 255)

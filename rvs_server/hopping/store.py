@@ -20,8 +20,8 @@ from typing import Any
 
 import numpy as np
 
-from ..files import atomic_file, save_npz_atomic
-from ..hop_sfm import HopReconstruction
+from rvs_server.files import atomic_file, save_npz_atomic
+from rvs_server.hopping.sfm import HopReconstruction
 from toolbox.geometry import Intrinsics
 
 HOP_FORMAT = "rvs-hop/1"

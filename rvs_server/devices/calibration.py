@@ -12,7 +12,7 @@ from typing import Any, Literal
 
 from pydantic import Field
 
-from .config import Settings
+from rvs_server.config import Settings
 from toolbox.geometry import Intrinsics, SensorMount
 
 Vector = tuple[float, float, float]

@@ -9,7 +9,7 @@
     route-go --to NAME:INDEX [--matcher M]             from wherever the rover is, through the network
     sun --azimuth DEG --elevation DEG                  simulated: move the sun (shadows, brightness)
 
-Routes live in an SQLite database in the data directory (rvs_server/routes_store.py: images
+Routes live in an SQLite database in the data directory (rvs_server/routes/store.py: images
 compressed, every matcher's descriptors beside them), so they survive a restart. The matcher
 ("features", the default, or the paper's "contour") is chosen per command; both describe every
 image when it is stored.
@@ -28,17 +28,17 @@ from pydantic import Field, model_validator
 from drivers.sim.config import Sun
 from drivers.sim.forward_camera import ForwardCameraConfig
 
-from ..config import CommandConfig, SafeName, Settings
-from ..dispatch import Call, Module
-from ..jobs import JobContext
-from ..protocol import BadRequest, DeviceError, WrongMode
-from ..rasters import write_png
-from ..routes_store import Action, RouteStore, RouteStoreConfig, RouteStoreError
+from rvs_server.config import CommandConfig, SafeName, Settings
+from rvs_server.dispatch import Call, Module
+from rvs_server.jobs import JobContext
+from rvs_server.protocol import BadRequest, DeviceError, WrongMode
+from rvs_server.products.rasters import write_png
+from rvs_server.routes.store import Action, RouteStore, RouteStoreConfig, RouteStoreError
 from toolbox.colour import with_title
 from toolbox.routes.follow import FollowParams, FollowReport, Leg, RouteFollower
 from toolbox.routes.match import MATCHER_NAMES, rank_route
 from toolbox.routes.network import NetworkLeg, NetworkLink, Segment, shortest_way
-from .routes_rover import RouteRover, check_rover
+from rvs_server.routes.rover import RouteRover, check_rover
 
 Matcher = Literal["features", "contour"]
 

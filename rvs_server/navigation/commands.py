@@ -19,12 +19,12 @@ from pydantic import BaseModel, ConfigDict, Field, PlainValidator, PositiveFloat
 from scipy.ndimage import binary_fill_holes
 
 from drivers.sim.config import DriveError
-from ..config import CommandConfig, Point, Range, SafeName, Settings, TypeLabel
-from ..dispatch import Call, Module
-from ..files import atomic_file
-from ..jobs import JobContext
-from ..protocol import BadRequest, Timeout, WrongMode
-from ..rasters import read_geotiff, write_geotiff, write_png
+from rvs_server.config import CommandConfig, Point, Range, SafeName, Settings, TypeLabel
+from rvs_server.dispatch import Call, Module
+from rvs_server.files import atomic_file
+from rvs_server.jobs import JobContext
+from rvs_server.protocol import BadRequest, Timeout, WrongMode
+from rvs_server.products.rasters import read_geotiff, write_geotiff, write_png
 from toolbox.colour import colourise, with_colour_bar, with_title
 from toolbox.geometry import RoverPose
 from toolbox.grid import GridSpec
@@ -32,7 +32,7 @@ from toolbox.mapping.hazard import HAZARD, UNKNOWN
 from toolbox.planning import (MapLayers, PlanningParams, blank_map_spanning, cells_to_world, distance_to_border,
                                 drivable_prefix, enclosed_unknown, fuse_maps, inside_box, outside_box, plan_path,
                                 terrain_cost, with_hazards)
-from .grid_canvas import Canvas
+from rvs_server.products.canvas import Canvas
 
 T = TypeVar("T")
 Metres = Annotated[float, Field(ge=0)]

@@ -43,7 +43,7 @@ import cv2
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from .protocol import check_safe_name
+from rvs_server.protocol import check_safe_name
 from toolbox.routes.match import MATCHER_NAMES, PlaceMatcher, grey_image, make_matcher
 
 DATABASE_FILE = "routes.sqlite"

@@ -2,9 +2,9 @@
 
     hop --speed V --elevation DEG --heading DEG    the hopper turns, launches and records its flight
                                                    (simulated: drivers/sim/hopper.py on the test bed's
-                                                   world); product hop-NNN (hopping_store.py)
+                                                   world); product hop-NNN (store.py)
     hop-plan [--goal X,Y | --goal-heading DEG]     the last hop reconstructed, made metric, corrected by
-                                                   ICP, and the next landing target (hopping_plan.py)
+                                                   ICP, and the next landing target (plan.py)
     hop-map                                        every hop-plan cloud so far on one top-down map, true
                                                    colour and false colour by hop (paper Fig 18)
 
@@ -29,18 +29,18 @@ from pydantic import Field, model_validator
 from drivers.sim.hopper import Hopper, HopperConfig
 from drivers.sim.hopper_flight import OffTerrain
 
-from ..config import CommandConfig, Point, Settings
-from ..dispatch import Module
-from ..hop_sfm import Mapper
-from ..jobs import JobContext
-from ..protocol import BadRequest, DeviceError, WrongMode
-from ..rasters import write_geotiff, write_png
+from rvs_server.config import CommandConfig, Point, Settings
+from rvs_server.dispatch import Module
+from rvs_server.hopping.sfm import Mapper
+from rvs_server.jobs import JobContext
+from rvs_server.protocol import BadRequest, DeviceError, WrongMode
+from rvs_server.products.rasters import write_geotiff, write_png
 from toolbox.colour import with_title
 from toolbox.geometry import rotation_z
 from toolbox.hopping import MOON_GRAVITY, hop_range
-from .hopping_pictures import contact_sheet, global_maps
-from .hopping_plan import run_hop_plan
-from .hopping_store import cloud_of, next_hop_number, read_ply, write_hop, write_ply
+from rvs_server.hopping.pictures import contact_sheet, global_maps
+from rvs_server.hopping.plan import run_hop_plan
+from rvs_server.hopping.store import cloud_of, next_hop_number, read_ply, write_hop, write_ply
 
 REAL_LINK_MISSING = ("hopper: backend \"real\" (hopping.toml) has no link to a hopper in this server: commanding "
                      "the spring launch and downloading the frames, timestamps and IMU / sun-sensor readings is not "
@@ -48,7 +48,7 @@ REAL_LINK_MISSING = ("hopper: backend \"real\" (hopping.toml) has no link to a h
 
 
 class SfmSetting(Settings):
-    """One way to run structure from motion (hop_sfm.SfmConfig's choices)."""
+    """One way to run structure from motion (sfm.SfmConfig's choices)."""
 
     mapper: Mapper = Field(..., description="global: GLOMAP; incremental: COLMAP's")
     first_octave: int = Field(..., ge=-1, le=2, description="SIFT's first octave: 0 the frames as they are, -1 "
@@ -73,7 +73,7 @@ class HoppingSettings(Settings):
                                   "-1 doubled first (more features on small frames, about 4x slower at 640x480)")
     sfm_mapper: Mapper = Field("global", description="global: GLOMAP, every frame's "
                                                           "pose at once; incremental: the paper's COLMAP mapping, "
-                                                          "which bent 8 of 38 campaign hops (hop_sfm.py)")
+                                                          "which bent 8 of 38 campaign hops (sfm.py)")
     sfm_fallbacks: list[SfmSetting] = Field(
         [SfmSetting(mapper="incremental", first_octave=-1), SfmSetting(mapper="global", first_octave=-1)],
         max_length=4, description="tried in turn when a reconstruction is not a clean flight (the parabola fit's "

@@ -33,13 +33,13 @@ import numpy as np
 from pydantic import Field
 from scipy.ndimage import distance_transform_edt
 
-from ..config import CommandConfig, Point, SafeName
-from ..files import atomic_file, save_npy_atomic
-from ..jobs import JobContext
-from ..mapping_ops import leave_camera_as_acquired, operations
-from ..products import ProductPart
-from ..protocol import BadRequest
-from ..rasters import read_geotiff
+from rvs_server.config import CommandConfig, Point, SafeName
+from rvs_server.files import atomic_file, save_npy_atomic
+from rvs_server.jobs import JobContext
+from rvs_server.mapping.steps import leave_camera_as_acquired, operations
+from rvs_server.products.manifests import ProductPart
+from rvs_server.protocol import BadRequest
+from rvs_server.products.rasters import read_geotiff
 from toolbox.geometry import RoverPose
 from toolbox.mapping.localisation import merge_clouds
 from toolbox.grid import GridSpec
@@ -49,10 +49,10 @@ from toolbox.planning import (DrivablePrefix, MapLayers, PlanningParams, PlanRes
                                 with_hazards, with_unknown)
 from toolbox.planning.drive_error import cut_for_drive_error
 from toolbox.planning.paths import path_length
-from ..workflow import WorkflowError, resolve_params, run_workflow
-from .mapping import MappingSettings, NavigateArgs, check_workflow, write_maps
-from .navigate_pictures import write_traverse
-from .navigation import (NavigationSettings, check_reach, handout_border, hole_mask, look_distance, module,
+from rvs_server.workflow import WorkflowError, resolve_params, run_workflow
+from rvs_server.mapping.commands import MappingSettings, NavigateArgs, check_workflow, write_maps
+from rvs_server.navigation.pictures import write_traverse
+from rvs_server.navigation.commands import (NavigationSettings, check_reach, handout_border, hole_mask, look_distance, module,
                          operating_box, planning_layers, planning_params, under_rover, unlooked_ground, wait_for_pose,
                          within_area, write_plan)
 

@@ -1,10 +1,10 @@
 """hop-plan's job: the last hop's frames to a corrected position and the next landing target.
 
 The steps, each timed, in the paper's order (Fig 3):
-    sfm        COLMAP through pycolmap on the CPU (global mapping), the camera's calibration held fixed (hop_sfm)
-    dense      two-view SGBM on pairs rectified from the SfM poses (hop_sfm.densify)
+    sfm        COLMAP through pycolmap on the CPU (global mapping), the camera's calibration held fixed (sfm)
+    dense      two-view SGBM on pairs rectified from the SfM poses (sfm.densify)
     estimate   scale and gravity from the parabola, the cloud into the world at the launch estimate,
-               ICP against the previous hop's cloud, the touchdown (hopping_estimate)
+               ICP against the previous hop's cloud, the touchdown (estimate)
     plan       top-down maps, obstacle and safe-landing masks, the target and its launch (plan_landing)
     write      the product's pictures, clouds and JSON; simulated, truth/ comparisons
 The reconstruction is checkpointed into the product (sfm.npz), so `continue` after a break skips it.
@@ -21,20 +21,20 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import pycolmap
 
-from ..files import atomic_file
-from ..hop_sfm import HopReconstruction, SfmConfig, densify, reconstruct_hop, timed
-from ..jobs import JobContext
-from ..protocol import BadRequest, RvsError
-from ..rasters import write_geotiff, write_png
+from rvs_server.files import atomic_file
+from rvs_server.hopping.sfm import HopReconstruction, SfmConfig, densify, reconstruct_hop, timed
+from rvs_server.jobs import JobContext
+from rvs_server.protocol import BadRequest, RvsError
+from rvs_server.products.rasters import write_geotiff, write_png
 from toolbox.geometry import apply
 from toolbox.hopping import LandingParams, LandingPlan, NoGroundError, plan_landing
-from .hopping_estimate import EstimateError, EstimateParams, HopEstimate, estimate_hop, flight_check
-from .hopping_pictures import plan_pictures, trajectory_picture, truth_target_picture
-from .hopping_store import (HopObservation, cloud_of, load_observation, load_reconstruction, load_truth, read_ply,
+from rvs_server.hopping.estimate import EstimateError, EstimateParams, HopEstimate, estimate_hop, flight_check
+from rvs_server.hopping.pictures import plan_pictures, trajectory_picture, truth_target_picture
+from rvs_server.hopping.store import (HopObservation, cloud_of, load_observation, load_reconstruction, load_truth, read_ply,
                             save_reconstruction, write_ply)
 
 if TYPE_CHECKING:   # hopping.py imports this module
-    from .hopping import HoppingSettings
+    from rvs_server.hopping.commands import HoppingSettings
 
 FRAME_NOTE = ("world frame: x east, y north, z up, metres, heights relative to the start's ground; positions "
               "are the hopper's centre of mass; headings degrees counter-clockwise from east")
@@ -121,7 +121,7 @@ def structure_from_motion(ctx: JobContext, product: Any, observation: HopObserva
 def reconstruct_cleanly(ctx: JobContext, observation: HopObservation, settings: HoppingSettings, workdir: Path,
                         hop: str) -> tuple[HopReconstruction, list[dict]]:
     """SfM with hopping.toml's setting, then each of sfm_fallbacks in turn while the reconstruction is not a
-    clean flight (hopping_estimate.flight_check). Every setting bends a few hops at random, seldom the same
+    clean flight (estimate.flight_check). Every setting bends a few hops at random, seldom the same
     ones. Returns the first clean reconstruction, or the one whose parabola fit kept most frames, and what
     each attempt gave."""
     settings_tried = [(settings.sfm_mapper, settings.sfm_first_octave)] + \

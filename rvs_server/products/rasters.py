@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 import tifffile
 
-from .files import atomic_path
+from rvs_server.files import atomic_path
 from toolbox.grid import GridSpec
 
 # GeoTIFF keys: raster is "pixel is area"; model type projected; a user-defined projection in metres.

@@ -21,12 +21,12 @@ import numpy as np
 from drivers.sim.forward_camera import ForwardCamera
 from drivers.sim.motion import dead_reckon
 
-from ..jobs import JobContext
-from ..mapping_ops import point_ptu, stereo_intrinsics
-from ..protocol import BadRequest, DeviceError
+from rvs_server.jobs import JobContext
+from rvs_server.mapping.steps import point_ptu, stereo_intrinsics
+from rvs_server.protocol import BadRequest, DeviceError
 from toolbox.geometry import RoverPose
 from toolbox.routes.match import PlaceMatcher, grey_image
-from .navigation import wait_for_pose
+from rvs_server.navigation.commands import wait_for_pose
 
 FORWARD_CAMERA_MISSING = ("routes: camera \"forward\" is the simulated rover's body-fixed camera and the devices are "
                           "real; set camera = \"left\" (routes.toml) to use the left stereo camera")

@@ -1,0 +1,4 @@
+"""Commands that exist only on the simulated world: sim-fault."""
+from rvs_server.simulation.commands import module
+
+__all__ = ["module"]
