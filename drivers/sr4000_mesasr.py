@@ -3,7 +3,7 @@
 The library is loaded when a camera is opened, not when this module is imported, so machines
 without it (CI, the emulated test bed) never need it. Every function used has its argtypes and
 restype declared from libMesaSR.h / definesSR.h; `library` points at another build (the tests use
-a fake compiled from tests/fakes/fake_mesasr.c).
+a fake compiled from tests/drivers/fakes/fake_mesasr.c).
 
 Axes: SR_CoordTrfFlt gives metres in MESA's camera frame, X to the left, Y up, Z forward along the
 optical axis (MRPT's CSwissRanger3DCamera maps it so). We turn it into the OpenCV frame of

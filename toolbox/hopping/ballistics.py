@@ -10,7 +10,7 @@ At the 45-degree optimum the first-order elevation term vanishes (dd/dtheta = 0)
 ellipse claims an elevation error costs nothing, and it misses that hops fall short on average.
 `landing_error_ellipse` uses the exact mean and variance instead: for independent Gaussian errors the
 moments of v^2 sin(2 theta), of cos(psi) and of sin(psi) are closed forms.
-tests/test_hopping_landing.py checks it against a Monte Carlo of the range equation.
+tests/toolbox/test_hopping_landing.py checks it against a Monte Carlo of the range equation.
 """
 from __future__ import annotations
 

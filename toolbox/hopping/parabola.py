@@ -35,7 +35,7 @@ Gaussian noise, which reaches the Cramer-Rao bound of the noise (tested). Around
     direction is known (the paper applies eq 1 before it knows the scale);
   - the standard errors of the scale and of gravity's direction from the fit's covariance.
 tests/bench/bench_hopping.py measures both fits on synthetic hops (noise, outliers, noisier ends, a
-systematic bend, scale drift); tests/test_hopping_parabola.py holds the known answers. A bend that is
+systematic bend, scale drift); tests/toolbox/test_hopping_parabola.py holds the known answers. A bend that is
 quadratic in time looks exactly like gravity to any fit: neither fit removes it (bench: 3.5 % timed,
 4.0 % paper, median), the accelerometer prior at least keeps gravity's direction.
 

@@ -25,7 +25,7 @@ radius on a 0.40 m track, mast and PTU raising the centre of mass):
   counted only where at least 5 cells exceed it (ETH's nCellCritical 5) so a lone noisy cell or a
   surviving flying pixel is no step. Ground plate 0.5 m half-size (1 m square, twice the rover's
   width): rocks up to 1 m across, the largest the simulator places, are flagged over their whole
-  top, not only along their rims (on the simulated scene of tests/test_toolbox_hazard.py this
+  top, not only along their rims (on the simulated scene of tests/toolbox/test_toolbox_hazard.py this
   lifts the step recall of obstacle cells from 0.68 with a 0.25 m plate to 0.97), while on
   terrain that curves over metres the plate sits within a centimetre of the crest (it lowers a
   crest of curvature c by c r^2).

@@ -27,7 +27,7 @@ from rvs_server.products.rasters import read_png, read_tiff
 # The stereo traverse looks ahead only, so each cycle takes a few views (the repository's full
 # panoramas take 20 s a cycle). Both runs of a case use the same files.
 NARROW_PAN = {"first_pan": "[-40.0, 40.0]", "cycle_pan": "[-40.0, 40.0]"}
-NAV_GOAL = "0.18,1.62"   # open ground 1.6 m from the start of the small world (tests/test_navigate.py open_goal)
+NAV_GOAL = "0.18,1.62"   # open ground 1.6 m from the start of the small world (tests/navigation/test_navigate.py open_goal)
 
 
 def navigation_toml() -> str:

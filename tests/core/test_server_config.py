@@ -15,7 +15,7 @@ import pytest
 from rvs_server.app import BoundedLogFile, Server
 from rvs_server.protocol import BadRequest
 
-REPO = Path(__file__).resolve().parent.parent
+REPO = Path(__file__).resolve().parents[2]
 
 # One valid change and one invalid value per configuration file: (key, changed, invalid).
 EDITS = {

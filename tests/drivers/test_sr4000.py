@@ -1,5 +1,5 @@
 """Tests of the SR4000 drivers: the settings file, the ctypes backend against a fake libmesasr
-compiled here from tests/fakes/fake_mesasr.c, the emulator against the simulated world's truth,
+compiled here from tests/drivers/fakes/fake_mesasr.c, the emulator against the simulated world's truth,
 and grab() / previews over the interface."""
 from __future__ import annotations
 
@@ -156,7 +156,7 @@ class FakeLibrary:
 def fake_library_path(tmp_path_factory) -> Path:
     gcc = shutil.which("gcc")
     if gcc is None:
-        pytest.skip("gcc is not installed: cannot build the fake libmesasr (tests/fakes/fake_mesasr.c)")
+        pytest.skip("gcc is not installed: cannot build the fake libmesasr (tests/drivers/fakes/fake_mesasr.c)")
     path = tmp_path_factory.mktemp("fake-mesasr") / "libmesasr.so"
     subprocess.run([gcc, "-shared", "-fPIC", "-O1", "-Wall", "-Wextra", "-Werror", "-o", str(path),
                     str(FAKE_SOURCE)], check=True, capture_output=True)

@@ -25,7 +25,7 @@ from clients.gnc import (AsyncRvsClient, Event, Progress, Result, RvsBadRequest,
                          RvsConnectionError, RvsInterrupted, RvsRequestError, RvsUnknownCommand, ZmqClient)
 from rvs_server.protocol import Reply
 
-REPO = Path(__file__).resolve().parent.parent
+REPO = Path(__file__).resolve().parents[2]
 
 RVS = [str(REPO / ".venv" / "bin" / "rvs")] if (REPO / ".venv" / "bin" / "rvs").exists() else \
     [sys.executable, "-m", "clients.cli"]

@@ -2,7 +2,7 @@
 
 The follower runs here against a rover on a line with a matcher that sees positions, so each rule is
 checked exactly: the approach by scale, the heading correction from the shift, the overshoot limit,
-the scan after a turn, and recovery at a nearby place. tests/test_routes_commands.py runs it on
+the scan after a turn, and recovery at a nearby place. tests/routes/test_routes_commands.py runs it on
 rendered images through the server.
 """
 from __future__ import annotations
