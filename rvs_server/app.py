@@ -170,6 +170,7 @@ class Server:
         self.overrides = dict(overrides or {})
         self.modules = all_modules()
         self.registry = Registry(self.modules)
+        self._module_states: dict[str, Any] = {}
         self._load_configuration()  # raises ConfigError; nothing is started before it passed
         self.data_dir = Path(self.settings.data_dir).resolve()
         self.data_dir.mkdir(parents=True, exist_ok=True)
@@ -221,11 +222,17 @@ class Server:
         self.settings, self.devices_config, self.world_config = c.settings, c.devices, c.world
         self.world_file, self.calibration_config, self.module_configs = c.world_file, c.calibration, c.modules
 
-    def module_settings(self, module: Module | None) -> Any:
-        return self.module_configs[module.name].settings if module else None
+    def settings_of(self, module: str) -> Any:
+        return self.module_configs[module].settings
 
-    def module_settings_of(self, name: str) -> Any:
-        return self.module_configs[name].settings
+    def state_of(self, module: str) -> Any:
+        """A module's state lives as long as the server (reinit keeps it), made on first use."""
+        if module not in self._module_states:
+            factory = self.registry.modules[module].state
+            if factory is None:
+                raise KeyError(f"module {module} keeps no state")
+            self._module_states[module] = factory(self)
+        return self._module_states[module]
 
     def calibration(self) -> Calibration:
         """The calibration the maps use: from the file, or the simulated rover's calibrated mounts."""

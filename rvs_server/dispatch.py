@@ -16,8 +16,9 @@ import os
 import traceback
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
+from enum import StrEnum
 from pathlib import Path
-from typing import Any, Awaitable, Callable, Literal, Mapping, Protocol
+from typing import TYPE_CHECKING, Any, Awaitable, Callable, Literal, Mapping, Protocol
 
 from drivers.errors import DeviceFault, DeviceTimeout
 
@@ -26,10 +27,24 @@ from .jobs import Job, JobContext, JobInterrupted, RecoverySet
 from .protocol import (Busy, CommandLine, DeviceError, InternalError, Interrupted, RvsError,
                        Sleeping, Timeout, Unauthorized, UnknownCommand, WrongMode)
 
+if TYPE_CHECKING:
+    from .host import Host
+
 log = logging.getLogger("rvs.dispatch")
 
 Kind = Literal["immediate", "control", "job"]
-MODES = ("standby", "busy", "break", "sleep")
+
+
+class Mode(StrEnum):
+    """The server's modes (PROTOCOL.md, "Modes"). A StrEnum, so a mode is its wire word."""
+
+    STANDBY = "standby"
+    BUSY = "busy"      # a job runs
+    BREAK = "break"    # a job was interrupted; continue resumes it
+    SLEEP = "sleep"    # until a time, or until `standby`
+
+
+MODES = tuple(Mode)
 # Jobs that ready the hardware for `continue` (PROTOCOL.md: after a device fault, reset, then
 # continue): they run in break mode and leave the server in it.
 BREAK_MODE_JOBS = ("reset",)
@@ -84,10 +99,12 @@ class Module:
     defaults for that command's options, e.g. `[move-ptu] speed = 20.0`.
     """
 
-    def __init__(self, name: str, settings: type[Settings] | None = None, summary: str = ""):
+    def __init__(self, name: str, settings: type[Settings] | None = None, summary: str = "",
+                 state: Callable[["Host"], Any] | None = None):
         self.name = name
         self.settings = settings
         self.summary = summary
+        self.state = state  # makes the module's per-server state (stores, what a sequence remembers)
         self.commands: list[CommandSpec] = []
 
     def command(self, name: str, config: type[CommandConfig] = NoOptions, kind: Kind = "control",
@@ -165,10 +182,22 @@ class Session:
 class Call:
     """What an immediate or control handler gets besides its options."""
 
-    server: Any
+    server: "Host"
     session: Session
     request: Request
     sink: ReplySink
+    module: str | None = None  # the command's module: its settings and state
+
+    @property
+    def settings(self) -> Any:
+        return self.server.settings_of(self.module) if self.module else None
+
+    def settings_of(self, module: str) -> Any:
+        return self.server.settings_of(module)
+
+    @property
+    def state(self) -> Any:
+        return self.server.state_of(self.module) if self.module else None
 
 
 # ---------------------------------------------------------------------------------------------
@@ -176,15 +205,15 @@ class Call:
 
 
 class Dispatcher:
-    def __init__(self, server: Any):
+    def __init__(self, server: "Host"):
         self.server = server
-        self._base_mode = "standby"  # standby | break; busy and sleep are derived
+        self._base_mode = Mode.STANDBY  # standby | break; busy and sleep are derived
         self.sleep_until: float | None = None
         self._sleep_timer: asyncio.TimerHandle | None = None
         self.job: Job | None = None
         self._job_future: asyncio.Future | None = None
         self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="rvs-job")
-        self._last_mode = "standby"
+        self._last_mode = Mode.STANDBY
 
     # -- modes ----------------------------------------------------------------------------------
 
@@ -193,16 +222,16 @@ class Dispatcher:
         return self.server.registry
 
     @property
-    def mode(self) -> str:
+    def mode(self) -> Mode:
         if self.job is not None:
-            return "busy"
+            return Mode.BUSY
         if self.sleep_until is not None:
-            return "sleep"
+            return Mode.SLEEP
         return self._base_mode
 
-    def set_mode(self, mode: str) -> None:
-        assert mode in ("standby", "break")
-        self._base_mode = mode
+    def set_mode(self, mode: Mode) -> None:
+        assert mode in (Mode.STANDBY, Mode.BREAK)
+        self._base_mode = Mode(mode)
         self._announce_mode()
 
     def _announce_mode(self) -> None:
@@ -225,7 +254,7 @@ class Dispatcher:
             self._sleep_timer.cancel()
             self._sleep_timer = None
         self.sleep_until = None
-        self._base_mode = "standby"
+        self._base_mode = Mode.STANDBY
         self._announce_mode()
 
     def admit(self, spec: CommandSpec) -> None:
@@ -241,7 +270,7 @@ class Dispatcher:
         if self.job is not None:
             raise Busy(f"job {self.job.id} ({self.job.command}) is running at {self.job.percent:.0f}%; only "
                        f"immediate commands are accepted (break interrupts it)")
-        if spec.kind == "job" and self._base_mode == "break" and spec.name not in BREAK_MODE_JOBS:
+        if spec.kind == "job" and self._base_mode == Mode.BREAK and spec.name not in BREAK_MODE_JOBS:
             latest = self.server.recovery.latest()
             which = f" (job {latest.job}, {latest.command})" if latest else ""
             raise WrongMode(f"mode is break{which}: continue, abort or standby before starting {spec.name}")
@@ -277,7 +306,7 @@ class Dispatcher:
             if spec.kind == "job":
                 outcome: Any = self.start_job(spec, cfg, request.line or request.command, sink)
             else:
-                outcome = spec.handler(Call(self.server, session, request, sink), cfg)
+                outcome = spec.handler(Call(self.server, session, request, sink, spec.module.name if spec.module else None), cfg)
         except RvsError as exc:
             sink.error(exc)
             return
@@ -333,14 +362,15 @@ class Dispatcher:
         def on_progress(percent: float, message: str) -> None:
             loop.call_soon_threadsafe(self._progress, job, sink, percent, message)
 
-        settings = server.module_settings(spec.module)
-        ctx = JobContext(job, server, rset, resume, on_progress, server.recovery if rset else None, settings)
+        ctx = JobContext(job=job, server=server, module=spec.module.name if spec.module else None,
+                         recovery_set=rset, store=server.recovery if rset else None, resume=resume,
+                         on_progress=on_progress)
         self.job = job
         self._announce_mode()
         log.info("job %s start: %s%s", job_id, line, " (continued)" if recovery else "")
         server.publish("progress", {"job": job_id, "command": spec.name, "percent": 0, "message": "started"})
         work = loop.run_in_executor(self._executor, _run_handler, spec, ctx, cfg)
-        back_to_break = self._base_mode == "break" and spec.name in BREAK_MODE_JOBS
+        back_to_break = self._base_mode == Mode.BREAK and spec.name in BREAK_MODE_JOBS
         self._job_future = asyncio.ensure_future(self._finish(job, ctx, rset, work, back_to_break))
         return self._job_future
 
@@ -389,7 +419,7 @@ class Dispatcher:
             # A job that can be continued leaves the server in break mode, and so does a reset run in
             # it; anything else leaves it in standby.
             can_continue = keep_reason is not None and rset is not None
-            self._base_mode = "break" if can_continue or back_to_break else "standby"
+            self._base_mode = Mode.BREAK if can_continue or back_to_break else Mode.STANDBY
             log.info("job %s end (%s)", job.id, keep_reason or outcome)
             self._announce_mode()
 
@@ -458,4 +488,4 @@ def _raw_from_values(request: Request) -> tuple[str, ...]:
 
 
 __all__ = ["Module", "CommandSpec", "Registry", "Dispatcher", "Request", "Session", "Call", "NoOptions",
-           "ReplySink", "MODES", "map_device_errors"]
+           "ReplySink", "Mode", "MODES", "map_device_errors"]

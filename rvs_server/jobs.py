@@ -18,9 +18,12 @@ import threading
 import time
 from dataclasses import MISSING, dataclass, field, fields
 from pathlib import Path
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 from .files import write_json_atomic, write_text_atomic
+
+if TYPE_CHECKING:
+    from .host import Host
 
 
 log = logging.getLogger("rvs.jobs")
@@ -210,20 +213,36 @@ class Job:
 
 
 class JobContext:
-    """What a job handler sees: progress, checkpoints, safe points, devices, clock, data directory."""
+    """What a job handler sees: its settings and state, progress, checkpoints, safe points, devices,
+    clock, data directory. Built from named fields (dispatch.Dispatcher.start_job)."""
 
-    def __init__(self, job: Job, server: Any, rset: RecoverySet | None, resume: dict[str, Any] | None,
-                 on_progress: Callable[[float, str], None], store: RecoveryStore | None,
-                 settings: Any = None):
+    def __init__(self, *, job: Job, server: "Host", module: str | None = None,
+                 recovery_set: RecoverySet | None = None, store: RecoveryStore | None = None,
+                 resume: dict[str, Any] | None = None,
+                 on_progress: Callable[[float, str], None] = lambda percent, message: None):
         self.job = job
         self.server = server
+        self.module = module  # the name of the command's module: its settings and state
         self.resume = resume  # the last checkpoint when this run continues an interrupted job
-        self.settings = settings  # the module's settings from its TOML file
-        self._rset = rset
+        self._rset = recovery_set
         self._store = store
         self._on_progress = on_progress
         self.products: list[Any] = []  # folders this run writes; the runner closes unfinished ones
         self.log = logging.getLogger(f"rvs.job.{job.command}")
+
+    @property
+    def settings(self) -> Any:
+        """The command's module's settings, from configs/<module>.toml."""
+        return self.server.settings_of(self.module) if self.module else None
+
+    def settings_of(self, module: str) -> Any:
+        """Another module's settings (read them; the module that owns them says what they mean)."""
+        return self.server.settings_of(module)
+
+    @property
+    def state(self) -> Any:
+        """The command's module's state on this server (Module's `state` factory)."""
+        return self.server.state_of(self.module) if self.module else None
 
     @property
     def devices(self) -> Any:

@@ -28,7 +28,7 @@ import shutil
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Mapping
+from typing import TYPE_CHECKING, Any, Callable, Mapping
 
 import numpy as np
 import yaml
@@ -37,6 +37,9 @@ from pydantic import BaseModel, ConfigDict, ValidationError
 from .config import describe_validation_error
 from .files import save_npz_atomic, write_text_atomic
 from toolbox.grid import GridSpec
+
+if TYPE_CHECKING:
+    from rvs_server.jobs import JobContext
 
 # `$args.cell` or `${args.cell}` (the braces need block style in YAML; flow style takes the bare form).
 REFERENCE = re.compile(r"^\$(?:\{(args|config)\.([A-Za-z_]\w*)\}|(args|config)\.([A-Za-z_]\w*))$")
@@ -303,7 +306,7 @@ def _decode(tree: Any, arrays: dict[str, np.ndarray]) -> Any:
 class StepContext:
     """What an operation sees of the job: progress within its step, safe points, partial state."""
 
-    job: Any                      # the JobContext
+    job: JobContext                      # the JobContext
     step: str
     index: int
     total: int
@@ -327,7 +330,7 @@ class StepContext:
         return load_result(self.scratch, key) if has_result(self.scratch, key) else None
 
 
-def run_workflow(workflow: Workflow, operations: Operations, params: dict[str, BaseModel], job: Any,
+def run_workflow(workflow: Workflow, operations: Operations, params: dict[str, BaseModel], job: JobContext,
                  checkpoints: Path) -> tuple[dict[str, Any], list[dict[str, Any]]]:
     """Run the steps in order; finished steps found in `checkpoints` are loaded, not run again.
 

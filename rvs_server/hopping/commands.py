@@ -19,7 +19,6 @@ the start (the hop products stay).
 from __future__ import annotations
 
 import math
-import weakref
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
@@ -30,6 +29,7 @@ from drivers.sim.hopper import Hopper, HopperConfig
 from drivers.sim.hopper_flight import OffTerrain
 
 from rvs_server.config import CommandConfig, Point, Settings
+from rvs_server.host import Host
 from rvs_server.dispatch import Module
 from rvs_server.hopping.sfm import Mapper
 from rvs_server.jobs import JobContext
@@ -121,7 +121,8 @@ class HoppingSettings(Settings):
         return self
 
 
-module = Module("hopping", settings=HoppingSettings, summary="the hopping rover: hop, hop-plan, hop-map")
+module = Module("hopping", settings=HoppingSettings, summary="the hopping rover: hop, hop-plan, hop-map",
+                state=lambda server: HoppingState())
 
 
 class HopConfig(CommandConfig):
@@ -209,19 +210,16 @@ class HoppingState:
             self.estimate = touchdown.tolist()
 
 
-_states: "weakref.WeakKeyDictionary[Any, HoppingState]" = weakref.WeakKeyDictionary()
+def state_of(server: Host) -> HoppingState:
+    return server.state_of("hopping")
 
 
-def state_of(server: Any) -> HoppingState:
-    return _states.setdefault(server, HoppingState())
-
-
-def _settings(server: Any) -> HoppingSettings:
-    return server.module_settings_of("hopping")
+def _settings(server: Host) -> HoppingSettings:
+    return server.settings_of("hopping")
 
 
 # ------------------------------------------------------------------------------------ hop
-def _validate_hop(server: Any, cfg: HopConfig) -> None:
+def _validate_hop(server: Host, cfg: HopConfig) -> None:
     settings = _settings(server)
     if settings.backend == "real":
         raise DeviceError(REAL_LINK_MISSING)
@@ -234,7 +232,7 @@ def _validate_hop(server: Any, cfg: HopConfig) -> None:
 def hop(ctx: JobContext, cfg: HopConfig) -> dict[str, Any]:
     """Hop: turn to the heading, launch, record the flight's frames and the attitude sensors."""
     settings: HoppingSettings = ctx.settings
-    state = state_of(ctx.server)
+    state = ctx.state
     testbed = ctx.devices.testbed
     if not testbed.ready:
         ctx.progress(1, "waiting for the simulated world to be built")
@@ -260,7 +258,7 @@ def hop(ctx: JobContext, cfg: HopConfig) -> dict[str, Any]:
 
 
 # ------------------------------------------------------------------------------------ hop-plan
-def _validate_plan(server: Any, cfg: HopPlanConfig) -> None:
+def _validate_plan(server: Host, cfg: HopPlanConfig) -> None:
     if cfg.goal is not None and cfg.goal_heading is not None:
         raise BadRequest("hop-plan: --goal and --goal-heading given together; give one of them (or neither: on "
                          "along the last hop's direction)")
@@ -273,7 +271,7 @@ def _validate_plan(server: Any, cfg: HopPlanConfig) -> None:
 @module.job("hop-plan", HopPlanConfig, validate=_validate_plan)
 def hop_plan(ctx: JobContext, cfg: HopPlanConfig) -> dict[str, Any]:
     """Reconstruct the last hop, correct the position by ICP, choose the next landing target."""
-    state = state_of(ctx.server)
+    state = ctx.state
     inputs = (ctx.resume or {}).get("inputs")
     if inputs is None:
         if not state.hops:   # continued after a restart, from before its inputs were checkpointed
@@ -289,7 +287,7 @@ def hop_plan(ctx: JobContext, cfg: HopPlanConfig) -> dict[str, Any]:
 
 
 # ------------------------------------------------------------------------------------ hop-map
-def _validate_map(server: Any, cfg: HopMapConfig) -> None:
+def _validate_map(server: Host, cfg: HopMapConfig) -> None:
     if not any(h.cloud for h in state_of(server).hops):
         raise WrongMode("hop-map: no hop reconstructed yet: hop, then hop-plan, first")
 
@@ -298,7 +296,7 @@ def _validate_map(server: Any, cfg: HopMapConfig) -> None:
 def hop_map(ctx: JobContext, cfg: HopMapConfig) -> dict[str, Any]:
     """The global map of every reconstructed hop: true colour and false colour by hop, and the merged cloud."""
     settings: HoppingSettings = ctx.settings
-    entries = [h for h in state_of(ctx.server).hops if h.cloud]
+    entries = [h for h in ctx.state.hops if h.cloud]
     ctx.progress(10, f"merging the clouds of {len(entries)} hops")
     clouds = []
     for entry in entries:

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from pydantic import Field
@@ -26,6 +26,9 @@ from toolbox.colour import categorical, colourise, upscale, with_colour_bar, wit
 from toolbox.grid import GridSpec
 from toolbox.mapping.hazard import HAZARD, ROUGHNESS, SLOPE, STEP, UNKNOWN
 from rvs_server.workflow import WorkflowError, load_workflow, resolve_params, run_workflow
+
+if TYPE_CHECKING:
+    from rvs_server.host import Host
 
 
 class MappingSettings(Settings):
@@ -81,8 +84,8 @@ def _args(ctx: JobContext, cfg: DemConfig, sensor: str) -> WorkflowArgs:
                         cell=cfg.cell or s.cell, overlap=cfg.overlap if cfg.overlap is not None else s.overlap)
 
 
-def workflow_path(server: Any, command: str) -> Path:
-    settings: MappingSettings = server.module_configs["mapping"].settings
+def workflow_path(server: Host, command: str) -> Path:
+    settings: MappingSettings = server.settings_of("mapping")
     base = Path(settings.workflows_dir)
     if not base.is_absolute():
         base = server.config_dir.resolve() / base
@@ -98,7 +101,7 @@ class NavigateArgs(WorkflowArgs):
     step_limit: float = Field(0.10, gt=0)
 
 
-def check_workflow(server: Any, command: str, args_model: type[CommandConfig] = WorkflowArgs) -> Any:
+def check_workflow(server: Host, command: str, args_model: type[CommandConfig] = WorkflowArgs) -> Any:
     """Load and check the command's workflow: a broken file is refused before anything moves."""
     try:
         return load_workflow(workflow_path(server, command), operations, args_model, MappingSettings)
@@ -107,7 +110,7 @@ def check_workflow(server: Any, command: str, args_model: type[CommandConfig] = 
 
 
 def _validator(command: str):
-    def validate(server: Any, cfg: DemConfig) -> None:
+    def validate(server: Host, cfg: DemConfig) -> None:
         check_workflow(server, command)
     return validate
 

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Any, Callable, Literal
+from typing import TYPE_CHECKING, Any, Callable, Literal
 
 import numpy as np
 from pydantic import Field
@@ -22,6 +22,10 @@ from toolbox.mapping.ortho import merge_views, ortho_image
 from toolbox.mapping.stereo import SgbmConfig, StereoCalibration, rectification, stereo_points
 from toolbox.mapping.views import plan_views
 from rvs_server.workflow import Operations, StepContext, StepParams
+
+if TYPE_CHECKING:
+    from rvs_server.host import Host
+    from rvs_server.jobs import JobContext
 
 operations = Operations()
 
@@ -52,7 +56,7 @@ def plan(step: StepContext, params: PlanViewsParams) -> dict[str, Any]:
     return {"pan_tilt_deg": reachable, "planned_deg": wanted, "fov_deg": np.array([hfov, vfov])}
 
 
-def within_unit_limits(job: Any, views: np.ndarray) -> np.ndarray:
+def within_unit_limits(job: JobContext, views: np.ndarray) -> np.ndarray:
     """Views the PTU cannot reach are moved to its nearest limit: a D46 pans +-159 degrees, so the
     directions straight behind the rover are seen by the outermost views' field of view only."""
     limits = job.devices.ptu.require().limits
@@ -63,7 +67,7 @@ def within_unit_limits(job: Any, views: np.ndarray) -> np.ndarray:
     return clipped[np.sort(first)]
 
 
-def sensor_fov_deg(job: Any, sensor: str) -> tuple[float, float]:
+def sensor_fov_deg(job: JobContext, sensor: str) -> tuple[float, float]:
     if sensor == "tof":
         k = job.server.calibration().tof_intrinsics
     else:
@@ -71,7 +75,7 @@ def sensor_fov_deg(job: Any, sensor: str) -> tuple[float, float]:
     return (math.degrees(2 * math.atan((k.width / 2) / k.fx)), math.degrees(2 * math.atan((k.height / 2) / k.fy)))
 
 
-def stereo_intrinsics(job: Any) -> tuple[Intrinsics, Intrinsics]:
+def stereo_intrinsics(job: JobContext) -> tuple[Intrinsics, Intrinsics]:
     pair = job.devices.cameras.require()
     mode = job.devices.cameras.config.resolution
     out = []
@@ -81,11 +85,11 @@ def stereo_intrinsics(job: Any) -> tuple[Intrinsics, Intrinsics]:
     return out[0], out[1]
 
 
-def point_ptu(job: Any, pan: float, tilt: float) -> tuple[float, float]:
+def point_ptu(job: JobContext, pan: float, tilt: float) -> tuple[float, float]:
     """Move the PTU and wait until it stands; the angles it reports are what the maps use."""
     device = job.devices.ptu
     driver = device.require()
-    driver.move_to(pan, tilt, speed_deg_s=job.server.module_settings_of("ptu").default_speed_deg_s)
+    driver.move_to(pan, tilt, speed_deg_s=job.settings_of("ptu").default_speed_deg_s)
     driver.wait_until_stopped(timeout_s=120.0)
     return device.read_position()
 
@@ -137,7 +141,7 @@ def acquire_tof(step: StepContext, params: AcquireTofParams, views: dict) -> dic
     return {"sensor": "tof", "views": taken, "integration_time": last["integration_time"] if last else -1}
 
 
-def leave_camera_as_acquired(job: Any, acquired: dict) -> None:
+def leave_camera_as_acquired(job: JobContext, acquired: dict) -> None:
     """The camera's exposure as the acquisition's last view left it, also when that acquisition was
     loaded from a checkpoint after a restart (which reopened the camera at its configured exposure):
     the next panorama's first view then starts from the same exposure as in an uninterrupted run."""
@@ -372,5 +376,5 @@ def _depth_of(view: dict) -> np.ndarray:
     return np.where(view["valid"] & np.isfinite(z), z, np.nan)
 
 
-def current_pose(server: Any) -> RoverPose:
+def current_pose(server: Host) -> RoverPose:
     return server.pose_estimate

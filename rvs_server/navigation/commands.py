@@ -11,7 +11,7 @@ from __future__ import annotations
 import csv
 import math
 from pathlib import Path
-from typing import Annotated, Any, Generic, Literal, Sequence, TypeVar
+from typing import TYPE_CHECKING, Annotated, Any, Generic, Literal, Sequence, TypeVar
 
 import cv2
 import numpy as np
@@ -33,6 +33,9 @@ from toolbox.planning import (MapLayers, PlanningParams, blank_map_spanning, cel
                                 drivable_prefix, enclosed_unknown, fuse_maps, inside_box, outside_box, plan_path,
                                 terrain_cost, with_hazards)
 from rvs_server.products.canvas import Canvas
+
+if TYPE_CHECKING:
+    from rvs_server.host import Host
 
 T = TypeVar("T")
 Metres = Annotated[float, Field(ge=0)]
@@ -193,17 +196,17 @@ class PoseConfig(CommandConfig):
 LAST_MAP = {"tof": "dem-(full|update)-tof", "stereo": "dem-(full|update)"}
 
 
-def local_map(server: Any, sensor: str) -> tuple[MapLayers, str, Path, dict[str, np.ndarray]]:
+def local_map(server: Host, sensor: str) -> tuple[MapLayers, str, Path, dict[str, np.ndarray]]:
     """The latest hazard map of the sensor as planning layers, its name and folder, and its ortho-image."""
     name, folder = latest_map_folder(server, sensor)
-    settings: NavigationSettings = server.module_configs["navigation"].settings
+    settings: NavigationSettings = server.settings_of("navigation")
     layers = planning_layers(folder, settings, server.pose_estimate)
     ortho = folder / "ortho.tif"
     extra = {"ortho": read_geotiff(ortho)[0] if ortho.exists() else np.full(layers.spec.shape, np.nan)}
     return layers, name, folder, extra
 
 
-def latest_map_folder(server: Any, sensor: str) -> tuple[str, Path]:
+def latest_map_folder(server: Host, sensor: str) -> tuple[str, Path]:
     """The newer of the sensor's last dem-full/dem-update map and the last cycle's map of its last navigate
     run (a user who has just navigated expects plan-path to see what navigate saw), refused runs included:
     their maps are whole, only the traverse stopped."""
@@ -302,7 +305,7 @@ def planning_params(settings: NavigationSettings, weight: float | None, sensor: 
                           proximity_cost=settings.proximity_cost)
 
 
-def wait_for_pose(ctx: Any, reports: int, timeout_s: float, after: str) -> None:
+def wait_for_pose(ctx: JobContext, reports: int, timeout_s: float, after: str) -> None:
     """Wait (in simulated time; `break` ends it) until the GNC sends `pose` after the server's
     pose_reports count was `reports`; Timeout after timeout_s, naming what it waited `after`."""
     waited = 0.0
@@ -313,9 +316,9 @@ def wait_for_pose(ctx: Any, reports: int, timeout_s: float, after: str) -> None:
         waited += 0.5
 
 
-def operating_box(server: Any) -> tuple[float, float, float, float] | None:
+def operating_box(server: Host) -> tuple[float, float, float, float] | None:
     """navigation.toml operating_area as (x_min, x_max, y_min, y_max), or None where there is no bound."""
-    area = server.module_configs["navigation"].settings.operating_area
+    area = server.settings_of("navigation").operating_area
     if isinstance(area, OperatingArea):
         return area.box
     if area == "world" and server.devices.simulated:
@@ -329,10 +332,10 @@ def within_area(layers: MapLayers, box: tuple[float, float, float, float] | None
     return layers if box is None else with_hazards(layers, outside_box(layers.spec, box))
 
 
-def check_reach(server: Any, start: tuple[float, float] | None, goal: tuple[float, float]) -> None:
+def check_reach(server: Host, start: tuple[float, float] | None, goal: tuple[float, float]) -> None:
     """Refuse a goal outside the operating area, or farther than the planner's reach (its blank
     global map would be gigabytes); a start given outside the area too."""
-    settings: NavigationSettings = server.module_configs["navigation"].settings
+    settings: NavigationSettings = server.settings_of("navigation")
     if not all(math.isfinite(v) for v in goal):
         raise BadRequest(f"--to {goal[0]},{goal[1]}: must be finite numbers")
     box = operating_box(server)
@@ -349,7 +352,7 @@ def check_reach(server: Any, start: tuple[float, float] | None, goal: tuple[floa
                          f"{settings.max_reach_m:g} m (navigation.toml max_reach_m)")
 
 
-def _validate_plan(server: Any, cfg: PlanPathConfig) -> None:
+def _validate_plan(server: Host, cfg: PlanPathConfig) -> None:
     check_reach(server, cfg.from_, cfg.to)
 
 

@@ -27,7 +27,7 @@ import math
 import shutil
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Literal, NamedTuple
+from typing import TYPE_CHECKING, Any, Literal, NamedTuple
 
 import numpy as np
 from pydantic import Field
@@ -55,6 +55,9 @@ from rvs_server.navigation.pictures import write_traverse
 from rvs_server.navigation.commands import (NavigationSettings, check_reach, handout_border, hole_mask, look_distance, module,
                          operating_box, planning_layers, planning_params, under_rover, unlooked_ground, wait_for_pose,
                          within_area, write_plan)
+
+if TYPE_CHECKING:
+    from rvs_server.host import Host
 
 SENSOR_DEVICE = {"tof": "tof", "stereo": "cameras"}
 MAP_CLOUD_VOXEL_M = 0.05
@@ -97,7 +100,7 @@ class Traverse:
         return RoverPose(*self.pose)
 
 
-def _validate(server: Any, cfg: NavigateConfig) -> None:
+def _validate(server: Host, cfg: NavigateConfig) -> None:
     server.devices[SENSOR_DEVICE[cfg.sensor]].require_healthy()
     check_workflow(server, f"navigate-{cfg.sensor}", NavigateArgs)
     check_reach(server, None, cfg.to)
@@ -141,7 +144,7 @@ class Navigation:
         self.ctx, self.cfg = ctx, cfg
         self.server = ctx.server
         self.settings: NavigationSettings = ctx.settings
-        self.mapping: MappingSettings = self.server.module_configs["mapping"].settings
+        self.mapping: MappingSettings = ctx.settings_of("mapping")
         self.product = ctx.product(cfg, name=cfg.output)
         self.goal = (float(cfg.to[0]), float(cfg.to[1]))
         self.simulated = self._drives_simulated()

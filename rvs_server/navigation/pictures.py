@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
@@ -21,11 +21,14 @@ from toolbox.grid import GridSpec
 from toolbox.planning import MapLayers
 from rvs_server.products.canvas import Canvas as GridCanvas
 
+if TYPE_CHECKING:
+    from rvs_server.jobs import JobContext
+
 PICTURE_SIZE = 720
 WHITE, YELLOW, MAGENTA, GREEN, CYAN = (255, 255, 255), (250, 210, 40), (255, 60, 255), (60, 230, 60), (0, 230, 255)
 
 
-def write_traverse(ctx: Any, product: Any, state: Any, goal: tuple[float, float], outcome: str, message: str,
+def write_traverse(ctx: JobContext, product: Any, state: Any, goal: tuple[float, float], outcome: str, message: str,
                    fused: MapLayers | None, truth: dict | None) -> None:
     record = asdict(state)
     record.pop("true_path", None)
@@ -87,7 +90,7 @@ def map_panel(fused: MapLayers, state: Any, goal, truth: dict | None) -> np.ndar
     return with_key(canvas.image, key, "fused map of every cycle (cost: dark low, yellow high)")
 
 
-def truth_panel(ctx: Any, spec: GridSpec, truth: dict, goal, state: Any) -> np.ndarray | None:
+def truth_panel(ctx: JobContext, spec: GridSpec, truth: dict, goal, state: Any) -> np.ndarray | None:
     testbed = ctx.devices.testbed
     world = testbed.world
     if spec.cell < world.grid.cell:

@@ -7,7 +7,7 @@ and on `break` halts the unit where it is and keeps the absolute target in the r
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from pydantic import Field
 
@@ -15,6 +15,9 @@ from rvs_server.config import CommandConfig, Settings
 from rvs_server.dispatch import Module
 from rvs_server.jobs import JobContext, JobInterrupted
 from rvs_server.protocol import BadRequest, Timeout
+
+if TYPE_CHECKING:
+    from rvs_server.host import Host
 
 
 class PtuSettings(Settings):
@@ -36,7 +39,7 @@ class MovePtuConfig(CommandConfig):
     relative: bool = Field(False, description="pan and tilt are offsets from the current position")
 
 
-def _target(server: Any, cfg: MovePtuConfig) -> tuple[float, float]:
+def _target(server: Host, cfg: MovePtuConfig) -> tuple[float, float]:
     """The absolute target; refuses angles outside the unit's limits, naming the range."""
     if cfg.pan is None and cfg.tilt is None:
         raise BadRequest("move-ptu: give --pan, --tilt or both")
@@ -62,11 +65,11 @@ def _target(server: Any, cfg: MovePtuConfig) -> tuple[float, float]:
     return pan, tilt
 
 
-def validate_move(server: Any, cfg: MovePtuConfig) -> None:
+def validate_move(server: Host, cfg: MovePtuConfig) -> None:
     _target(server, cfg)
 
 
-def unit_limits(server: Any) -> dict[str, str]:
+def unit_limits(server: Host) -> dict[str, str]:
     """What the unit itself allows, for help: the Config's bounds are only the outer envelope."""
     device = server.devices.ptu
     driver = device.driver  # once: a reset or reinit in the job thread may drop it meanwhile

@@ -17,7 +17,6 @@ image when it is stored.
 from __future__ import annotations
 
 import math
-import weakref
 from dataclasses import asdict
 from typing import Any, Literal
 
@@ -29,6 +28,7 @@ from drivers.sim.config import Sun
 from drivers.sim.forward_camera import ForwardCameraConfig
 
 from rvs_server.config import CommandConfig, SafeName, Settings
+from rvs_server.host import Host
 from rvs_server.dispatch import Call, Module
 from rvs_server.jobs import JobContext
 from rvs_server.protocol import BadRequest, DeviceError, WrongMode
@@ -96,14 +96,15 @@ class RoutesSettings(Settings):
         return FollowParams(**self.follow.model_dump())
 
 
-module = Module("routes", settings=RoutesSettings, summary="image-based routes: record, follow, connect, go")
+module = Module("routes", settings=RoutesSettings, summary="image-based routes: record, follow, connect, go",
+                state=lambda server: RoutesState(server))
 
 
 # ------------------------------------------------------------------------------------ state
 class RoutesState:
     """The store of one server, and the recording in progress (the paper's short-term memory)."""
 
-    def __init__(self, server: Any):
+    def __init__(self, server: Host):
         self.store = RouteStore(server.data_dir / "routes", _settings(server).store_config())
         self.before: int | None = None          # image id the next recorded action starts from
         self.true_path: list[list[float]] = []  # simulated: the taught route as driven
@@ -112,24 +113,19 @@ class RoutesState:
         return next((r.name for r in self.store.list_routes() if r.state == "recording"), None)
 
 
-_states: "weakref.WeakKeyDictionary[Any, RoutesState]" = weakref.WeakKeyDictionary()
+def state_of(server: Host) -> RoutesState:
+    return server.state_of("routes")
 
 
-def state_of(server: Any) -> RoutesState:
-    if server not in _states:
-        _states[server] = RoutesState(server)
-    return _states[server]
+def _settings(server: Host) -> RoutesSettings:
+    return server.settings_of("routes")
 
 
-def _settings(server: Any) -> RoutesSettings:
-    return server.module_settings_of("routes")
-
-
-def _check(server: Any, cfg: Any = None) -> None:
+def _check(server: Host, cfg: Any = None) -> None:
     check_rover(server, _settings(server))
 
 
-def _pose_tuple(server: Any) -> tuple[float, float, float]:
+def _pose_tuple(server: Host) -> tuple[float, float, float]:
     pose = server.pose_estimate
     return (pose.x, pose.y, pose.heading)
 
@@ -156,7 +152,7 @@ class DriveConfig(CommandConfig):
         return Action("forward", self.forward) if self.forward is not None else Action("backward", self.backward)
 
 
-def _validate_drive(server: Any, cfg: DriveConfig) -> None:
+def _validate_drive(server: Host, cfg: DriveConfig) -> None:
     settings = _settings(server)
     distance = cfg.forward or cfg.backward or 0.0
     if distance > settings.max_drive_m:
@@ -167,7 +163,7 @@ def _validate_drive(server: Any, cfg: DriveConfig) -> None:
 @module.job("drive", DriveConfig, resumable=False, validate=_validate_drive)
 def drive(ctx: JobContext, cfg: DriveConfig) -> dict[str, Any]:
     """One action; while a route is recorded, its triplet (image before, action, image after) too."""
-    state, settings = state_of(ctx.server), ctx.settings
+    state, settings = ctx.state, ctx.settings
     route = state.recording()
     action = cfg.action()
     rover = RouteRover(ctx, settings)
@@ -197,7 +193,7 @@ class RecordConfig(CommandConfig):
     name: SafeName | None = Field(None, description="the new route's name")
 
 
-def _validate_record(server: Any, cfg: RecordConfig) -> None:
+def _validate_record(server: Host, cfg: RecordConfig) -> None:
     state = state_of(server)
     recording = state.recording()
     if cfg.action == "start":
@@ -217,7 +213,7 @@ def _validate_record(server: Any, cfg: RecordConfig) -> None:
 @module.job("route-record", RecordConfig, resumable=False, validate=_validate_record, positionals=("action",))
 def route_record(ctx: JobContext, cfg: RecordConfig) -> dict[str, Any]:
     """Start recording a route (its first image), or stop and keep it in long-term memory."""
-    state, store = state_of(ctx.server), state_of(ctx.server).store
+    state, store = ctx.state, ctx.state.store
     if cfg.action == "start":
         rover = RouteRover(ctx, ctx.settings)
         store.create_route(cfg.name, metadata={"camera": ctx.settings.camera})
@@ -269,7 +265,7 @@ class FollowConfig(CommandConfig):
     output: SafeName | None = None
 
 
-def _validate_follow(server: Any, cfg: FollowConfig) -> None:
+def _validate_follow(server: Host, cfg: FollowConfig) -> None:
     state = state_of(server)
     _finished_route(state, cfg.name, "route-follow")
     _check(server)
@@ -291,7 +287,7 @@ def _finished_route(state: RoutesState, name: str, command: str) -> None:
 def route_follow(ctx: JobContext, cfg: FollowConfig) -> dict[str, Any]:
     """Repeat a route: each action stopped when the live view matches its image after."""
     matcher_name = cfg.matcher or ctx.settings.matcher
-    last = len(state_of(ctx.server).store.triplets(cfg.name))   # the last place
+    last = len(ctx.state.store.triplets(cfg.name))   # the last place
     segment = Segment(cfg.name, last, 0) if cfg.reverse else Segment(cfg.name, 0, last)
     product = ctx.product(cfg, name=cfg.output)
     run = FollowRun(ctx, matcher_name, product)
@@ -304,7 +300,7 @@ class FollowRun:
 
     def __init__(self, ctx: JobContext, matcher_name: str, product: Any):
         self.ctx, self.product = ctx, product
-        self.state = state_of(ctx.server)
+        self.state = ctx.state
         self.matcher_name = matcher_name
         self.matcher = self.state.store.matcher(matcher_name)
         self.rover = RouteRover(ctx, ctx.settings, self.matcher)
@@ -355,7 +351,7 @@ class ConnectConfig(CommandConfig):
     matcher: Matcher | None = Field(None, description="features or contour; default routes.toml")
 
 
-def _validate_connect(server: Any, cfg: ConnectConfig) -> None:
+def _validate_connect(server: Host, cfg: ConnectConfig) -> None:
     finished = [r for r in state_of(server).store.list_routes() if r.state == "finished"]
     if len(finished) < 2:
         raise WrongMode(f"route-connect: needs two finished routes, there are {len(finished)}")
@@ -364,7 +360,7 @@ def _validate_connect(server: Any, cfg: ConnectConfig) -> None:
 @module.job("route-connect", ConnectConfig, resumable=False, validate=_validate_connect)
 def route_connect(ctx: JobContext, cfg: ConnectConfig) -> dict[str, Any]:
     """Link places of different routes that look alike (sec. 3.4): the best match in its neighbourhood."""
-    store = state_of(ctx.server).store
+    store = ctx.state.store
     matcher_name = cfg.matcher or ctx.settings.matcher
     matcher = store.matcher(matcher_name)
     routes = [r.name for r in store.list_routes() if r.state == "finished"
@@ -408,7 +404,7 @@ def linked_places(matcher: Any, a: list[Any], b: list[Any], window: int) -> list
 @module.command("route-list", CommandConfig)
 def route_list(call: Call, cfg: CommandConfig) -> dict[str, Any]:
     """The routes: state, legs, length, bytes stored, links."""
-    store = state_of(call.server).store
+    store = call.state.store
     routes = store.list_routes()
     links = store.links()
     reply: dict[str, Any] = {"count": len(routes)}
@@ -442,7 +438,7 @@ def _parse_place(state: RoutesState, text: str) -> tuple[str, int]:
     return name, number
 
 
-def _validate_go(server: Any, cfg: GoConfig) -> None:
+def _validate_go(server: Host, cfg: GoConfig) -> None:
     _parse_place(state_of(server), cfg.to)
     _check(server)
 
@@ -450,7 +446,7 @@ def _validate_go(server: Any, cfg: GoConfig) -> None:
 @module.job("route-go", GoConfig, resumable=False, validate=_validate_go)
 def route_go(ctx: JobContext, cfg: GoConfig) -> dict[str, Any]:
     """Find where the rover is on the route network, then follow the shortest way to the place."""
-    state, store = state_of(ctx.server), state_of(ctx.server).store
+    state, store = ctx.state, ctx.state.store
     goal = _parse_place(state, cfg.to)
     matcher_name = cfg.matcher or ctx.settings.matcher
     product = ctx.product(cfg, name=cfg.output)
@@ -502,7 +498,7 @@ class SunConfig(CommandConfig):
     elevation: float = Field(..., gt=0, le=90, description="degrees above the horizon")
 
 
-def _validate_sun(server: Any, cfg: SunConfig) -> None:
+def _validate_sun(server: Host, cfg: SunConfig) -> None:
     if not server.devices.simulated:
         raise DeviceError("sun: the devices are real; the sun is not ours to move")
 

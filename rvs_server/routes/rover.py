@@ -13,7 +13,7 @@ Actions (routes.toml `actions`, as navigation's `drive`):
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
@@ -28,11 +28,14 @@ from toolbox.geometry import RoverPose
 from toolbox.routes.match import PlaceMatcher, grey_image
 from rvs_server.navigation.commands import wait_for_pose
 
+if TYPE_CHECKING:
+    from rvs_server.host import Host
+
 FORWARD_CAMERA_MISSING = ("routes: camera \"forward\" is the simulated rover's body-fixed camera and the devices are "
                           "real; set camera = \"left\" (routes.toml) to use the left stereo camera")
 
 
-def check_rover(server: Any, settings: Any) -> None:
+def check_rover(server: Host, settings: Any) -> None:
     """Refuse, before anything moves, a set-up that cannot work."""
     simulated = server.devices.simulated
     if settings.camera == "forward" and not simulated:
@@ -104,7 +107,7 @@ class RouteRover:
         wait_for_pose(self.ctx, reports, self.settings.pose_timeout_s, f"the route action {kind} {shown:g}")
 
 
-def forward_camera(server: Any, settings: Any) -> ForwardCamera:
+def forward_camera(server: Host, settings: Any) -> ForwardCamera:
     """The simulated forward camera, one per server and rover (its noise stream continues)."""
     testbed = server.devices.testbed
     camera = getattr(server, "_routes_forward_camera", None)

@@ -8,7 +8,7 @@ of a real fault, so what a job does about it is what it would do on the test bed
 """
 from __future__ import annotations
 
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 from pydantic import Field
 
@@ -17,6 +17,9 @@ from drivers.sim.faults import FAULT_DEVICES
 from rvs_server.config import CommandConfig
 from rvs_server.dispatch import Call, Module
 from rvs_server.protocol import BadRequest, WrongMode
+
+if TYPE_CHECKING:
+    from rvs_server.host import Host
 
 module = Module("simulation", summary="the simulated world: injected device faults")
 
@@ -34,7 +37,7 @@ class SimFaultConfig(CommandConfig):
     clear: bool = Field(False, description="remove the fault; the device answers again (reset, then continue)")
 
 
-def _emulated(server: Any, device: str) -> str | None:
+def _emulated(server: Host, device: str) -> str | None:
     """Why `device` cannot take a fault (it is a real one, or off), or None."""
     config = server.devices.config
     section, backend, wanted = {
@@ -52,7 +55,7 @@ def _emulated(server: Any, device: str) -> str | None:
     return None
 
 
-def validate_fault(server: Any, cfg: SimFaultConfig) -> None:
+def validate_fault(server: Host, cfg: SimFaultConfig) -> None:
     if cfg.clear:
         if cfg.after is not None or cfg.kind is not None:
             raise BadRequest("sim-fault: --clear takes no --after or --kind (it removes the fault; "

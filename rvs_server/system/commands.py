@@ -4,17 +4,20 @@ from __future__ import annotations
 import hmac
 import shutil
 import time
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from pydantic import Field
 
 from rvs_server import __version__
 from rvs_server.config import CommandConfig, describe_allowed, describe_default, option_name, type_label
-from rvs_server.dispatch import Call, Module, Request
+from rvs_server.dispatch import Call, Mode, Module, Request
 from rvs_server.files import atomic_path
 from rvs_server.jobs import UnreadableRecoverySet
 from rvs_server.protocol import (EVENT_TOPICS, BadRequest, DeviceError, RvsError, Timeout, Unauthorized, WrongMode,
                         parse_line)
+
+if TYPE_CHECKING:
+    from rvs_server.host import Host
 
 module = Module("system", summary="modes, jobs, help, status, logs, authentication")
 
@@ -104,7 +107,7 @@ def standby(call: Call, cfg: Any) -> dict[str, Any]:
     dispatcher = call.server.dispatcher
     if dispatcher.sleep_until is not None:
         dispatcher.wake()
-    dispatcher.set_mode("standby")
+    dispatcher.set_mode(Mode.STANDBY)
     return {"mode": dispatcher.mode, "recovery": call.server.recovery.count()}
 
 
@@ -116,7 +119,7 @@ class SleepConfig(CommandConfig):
 def sleep(call: Call, cfg: SleepConfig) -> dict[str, Any]:
     """Sleep mode: no operations until the time has passed (standby wakes the server early)."""
     call.server.dispatcher.start_sleep(cfg.seconds)
-    return {"mode": "sleep", "seconds": cfg.seconds}
+    return {"mode": Mode.SLEEP, "seconds": cfg.seconds}
 
 
 @module.immediate("break")
@@ -142,7 +145,7 @@ class JobChoice(CommandConfig):
     job: str | None = Field(None, pattern=r"^[0-9]{1,12}$", description="job id; default the latest")
 
 
-def _recovery_set(server: Any, job: str | None):
+def _recovery_set(server: Host, job: str | None):
     """The named (or the latest) recovery set; a damaged one is named with what can be done."""
     chosen = job or server.recovery.latest_job()
     try:
@@ -156,7 +159,7 @@ def _recovery_set(server: Any, job: str | None):
     return rset
 
 
-def _no_set(server: Any, job: str | None) -> WrongMode:
+def _no_set(server: Host, job: str | None) -> WrongMode:
     stored = ", ".join(server.recovery.jobs()) or "none"
     what = f"no recovery set for job {job}" if job else "nothing to resume"
     return WrongMode(f"{what} (stored: {stored})")
@@ -190,7 +193,7 @@ def abort(call: Call, cfg: JobChoice) -> dict[str, Any]:
         raise _no_set(server, cfg.job)
     rset = server.recovery.load(job)  # None when damaged: dropping it is how to be rid of it
     server.recovery.delete(job)
-    server.dispatcher.set_mode("standby")
+    server.dispatcher.set_mode(Mode.STANDBY)
     return {"job": job, "command": rset.command if rset else "unknown", "mode": server.dispatcher.mode,
             "recovery": server.recovery.count()}
 

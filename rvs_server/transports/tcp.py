@@ -9,11 +9,14 @@ from __future__ import annotations
 import asyncio
 import logging
 import socket
-from typing import Any, Mapping
+from typing import TYPE_CHECKING, Any, Mapping
 
 from ..dispatch import Request, Session
 from ..protocol import (LINE_END, MAX_LINE_BYTES, BadRequest, RvsError, format_err, format_error, format_event,
                         format_ok, format_progress, is_ignored, parse_line, split_tag)
+
+if TYPE_CHECKING:
+    from rvs_server.host import Host
 
 log = logging.getLogger("rvs.tcp")
 
@@ -83,7 +86,7 @@ class LineSink:
 
 
 class TextConnection(asyncio.Protocol):
-    def __init__(self, server: Any):
+    def __init__(self, server: Host):
         self.server = server
         self.transport: asyncio.Transport | None = None
         self.telnet = TelnetFilter()
@@ -209,7 +212,7 @@ def claim_tcp_port(host: str, port: int) -> socket.socket:
     return sock
 
 
-async def start_tcp(server: Any, sock: socket.socket) -> asyncio.AbstractServer:
+async def start_tcp(server: Host, sock: socket.socket) -> asyncio.AbstractServer:
     """Listen on a claimed socket (see claim_tcp_port): from now on clients are answered."""
     loop = asyncio.get_running_loop()
     return await loop.create_server(lambda: TextConnection(server), sock=sock)

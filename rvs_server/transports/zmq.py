@@ -10,13 +10,16 @@ from __future__ import annotations
 
 import json
 import logging
-from typing import Any, Mapping
+from typing import TYPE_CHECKING, Any, Mapping
 
 import zmq
 import zmq.asyncio
 
 from ..dispatch import Request, Session
 from ..protocol import BadRequest, RvsError, TAG_RE, parse_line
+
+if TYPE_CHECKING:
+    from rvs_server.host import Host
 
 log = logging.getLogger("rvs.zmq")
 
@@ -57,7 +60,7 @@ class ZmqSink:
 
 
 class ZmqTransport:
-    def __init__(self, server: Any):
+    def __init__(self, server: Host):
         self.server = server
         self.context = zmq.asyncio.Context()
         self.router = self.context.socket(zmq.ROUTER)
