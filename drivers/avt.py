@@ -49,7 +49,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from drivers.errors import DeviceFault, DeviceTimeout
 from drivers.sim.clock import SimClock
-from drivers.sim.render import PinholeCamera
+from toolbox.camera import Intrinsics
 
 log = logging.getLogger(__name__)
 
@@ -66,7 +66,7 @@ MODE_WINDOW = {"low": 1.0, "medium": 1.0, "high": 0.75, "highest": 1.0}
 
 # The thesis' camera: 1920 x 1080 pixels of 7.4 um (PIKE F-210B). The thesis names no lens; a
 # 12 mm lens (61 degrees across) is assumed.
-PIKE_F210B_SENSOR = PinholeCamera(width=1920, height=1080, fx=12.0 / 7.4e-3, fy=12.0 / 7.4e-3,
+PIKE_F210B_SENSOR = Intrinsics(width=1920, height=1080, fx=12.0 / 7.4e-3, fy=12.0 / 7.4e-3,
                                   cx=959.5, cy=539.5)
 
 
@@ -167,7 +167,7 @@ def mode_window(sensor_width: int, sensor_height: int, mode: str) -> ModeWindow:
     return ModeWindow(binning, width, height, (binned_w - width) // 2, (binned_h - height) // 2)
 
 
-def mode_intrinsics(sensor: PinholeCamera, mode: str) -> PinholeCamera:
+def mode_intrinsics(sensor: Intrinsics, mode: str) -> Intrinsics:
     """The pinhole model of a mode, from the full sensor's.
 
     Binned pixel u covers sensor pixels b*u .. b*u + b - 1, so its centre is at b*u + (b - 1)/2;
@@ -175,12 +175,12 @@ def mode_intrinsics(sensor: PinholeCamera, mode: str) -> PinholeCamera:
     """
     window = mode_window(sensor.width, sensor.height, mode)
     b = window.binning
-    return PinholeCamera(width=window.width, height=window.height, fx=sensor.fx / b, fy=sensor.fy / b,
+    return Intrinsics(width=window.width, height=window.height, fx=sensor.fx / b, fy=sensor.fy / b,
                          cx=(sensor.cx - (b - 1) / 2) / b - window.offset_x,
                          cy=(sensor.cy - (b - 1) / 2) / b - window.offset_y, k1=sensor.k1, k2=sensor.k2)
 
 
-def intrinsics_per_mode(sensor: PinholeCamera = PIKE_F210B_SENSOR) -> dict[str, PinholeCamera]:
+def intrinsics_per_mode(sensor: Intrinsics = PIKE_F210B_SENSOR) -> dict[str, Intrinsics]:
     return {mode: mode_intrinsics(sensor, mode) for mode in RESOLUTION_MODES}
 
 

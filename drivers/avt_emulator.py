@@ -29,7 +29,7 @@ from drivers.avt_sensor import _SceneAtPulse, expose_image
 from drivers.avt_stereo import StereoCameras
 from drivers.sim.clock import SimClock
 from drivers.sim.faults import FaultSwitch
-from drivers.sim.render import PinholeCamera
+from toolbox.camera import Intrinsics
 from drivers.sim.world import World
 from drivers.trigger import EmulatedTrigger
 
@@ -57,7 +57,7 @@ class EmulatedCamera(Camera):
     """A hardware-triggered camera looking at the simulated world.
 
     `pose(t)` gives the camera's true camera-to-world 4x4 (OpenCV axes) at simulated time t;
-    `intrinsics` maps each resolution mode to its PinholeCamera (see intrinsics_per_mode). The
+    `intrinsics` maps each resolution mode to its Intrinsics (see intrinsics_per_mode). The
     camera connects itself to `trigger` (the cable); on a pulse after arm() it notes the instant,
     the pose and the sun at that instant, and renders in a thread of its own. `seed` makes the
     sensor noise repeatable (it is mixed with the camera's name and the frame number). `fault`
@@ -66,7 +66,7 @@ class EmulatedCamera(Camera):
 
     trigger_mode = "hardware (emulated)"
 
-    def __init__(self, name: str, world: World, pose: Pose, intrinsics: Mapping[str, PinholeCamera],
+    def __init__(self, name: str, world: World, pose: Pose, intrinsics: Mapping[str, Intrinsics],
                  clock: SimClock, trigger: EmulatedTrigger, seed: int = 0, *,
                  default_settings: CameraSettings | None = None, fault: FaultSwitch | None = None):
         super().__init__(name, clock=clock, default_settings=default_settings)
@@ -84,7 +84,7 @@ class EmulatedCamera(Camera):
         world.surface.scene   # build the ray-casting scene now, not in two render threads at once
         trigger.connect(self._on_trigger)
 
-    def intrinsics(self, mode: str | None = None) -> PinholeCamera:
+    def intrinsics(self, mode: str | None = None) -> Intrinsics:
         """The pinhole model of a resolution mode (default: the current one)."""
         return self._intrinsics[mode or self.settings.resolution]
 
@@ -203,7 +203,7 @@ class EmulatedCamera(Camera):
 
 def emulated_stereo_pair(world: World, left_pose: Pose, right_pose: Pose, *, clock: SimClock,
                          trigger: EmulatedTrigger | None = None,
-                         sensor: PinholeCamera = PIKE_F210B_SENSOR, seed: int = 0,
+                         sensor: Intrinsics = PIKE_F210B_SENSOR, seed: int = 0,
                          default_settings: CameraSettings | None = None,
                          ids: tuple[str, str] = ("emu-left", "emu-right"),
                          faults: Mapping[str, FaultSwitch] | None = None) -> StereoCameras:

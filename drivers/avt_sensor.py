@@ -17,7 +17,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from drivers.avt import EXPOSURE_MAX_US, EXPOSURE_MIN_US, CameraSettings
-from drivers.sim.render import PinholeCamera, render
+from drivers.sim.render import render
+from toolbox.camera import Intrinsics
 from drivers.sim.world import World
 
 # Sensor model, after a Kodak KAI-2093-class interline CCD (the PIKE F-210B's): electrons per unit
@@ -40,7 +41,7 @@ class _SceneAtPulse:
 
     camera_to_world: np.ndarray
     sun: object
-    camera: PinholeCamera
+    camera: Intrinsics
 
 
 def expose_image(world: World, scene: _SceneAtPulse, settings: CameraSettings,

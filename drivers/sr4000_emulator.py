@@ -41,7 +41,8 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from drivers.sim.clock import SimClock
 from drivers.sim.faults import FaultSwitch
-from drivers.sim.render import PinholeCamera, RenderedView, render
+from drivers.sim.render import RenderedView, render
+from toolbox.camera import Intrinsics
 from drivers.sim.world import World
 from drivers.sr4000 import (
     AMPLITUDE_SATURATED,
@@ -62,9 +63,9 @@ from drivers.sr4000 import (
 )
 
 # Published calibrations (see the SR4000 reference): MRPT's, and the ROS driver's fallback.
-MRPT_INTRINSICS = PinholeCamera(width=176, height=144, fx=262.92, fy=262.92, cx=88.0, cy=69.0,
+MRPT_INTRINSICS = Intrinsics(width=176, height=144, fx=262.92, fy=262.92, cx=88.0, cy=69.0,
                                 k1=-0.826, k2=0.656)
-ROS_FALLBACK_INTRINSICS = PinholeCamera(width=176, height=144, fx=149.0, fy=149.0, cx=88.0, cy=72.0)
+ROS_FALLBACK_INTRINSICS = Intrinsics(width=176, height=144, fx=149.0, fy=149.0, cx=88.0, cy=72.0)
 EMULATED_SERIAL = 0x4000E300
 EMULATED_VERSION = "emulated SR4000 (RVS simulated world), libMesaSR 1.0.14 API"
 
@@ -477,7 +478,7 @@ class Sr4000Emulator(Sr4000):
     """
 
     def __init__(self, world: World, camera_pose: Callable[[], np.ndarray], clock: SimClock, *,
-                 intrinsics: PinholeCamera = MRPT_INTRINSICS, seed: int = 0,
+                 intrinsics: Intrinsics = MRPT_INTRINSICS, seed: int = 0,
                  settings: Sr4000Settings | None = None, model: Sr4000Model | None = None,
                  name: str = "sr4000-emulator", serial: int = EMULATED_SERIAL, fault: FaultSwitch | None = None):
         super().__init__(name, settings)

@@ -18,8 +18,10 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from drivers.avt import CameraSettings
 from drivers.avt_sensor import auto_exposure_us, sensor_image
-from drivers.sim.render import PinholeCamera, render
-from drivers.sim.rover import CAMERA_AXES_IN_HEAD, Rover, rotation_y
+from drivers.sim.render import render
+from toolbox.camera import Intrinsics
+from drivers.sim.rover import Rover
+from toolbox.geometry import CAMERA_AXES_IN_HEAD, rotation_y
 
 
 class ForwardCameraConfig(BaseModel):
@@ -36,8 +38,8 @@ class ForwardCameraConfig(BaseModel):
     seed: int = 11
 
     @property
-    def intrinsics(self) -> PinholeCamera:
-        return PinholeCamera.from_fov(self.width, self.height, self.horizontal_fov_deg)
+    def intrinsics(self) -> Intrinsics:
+        return Intrinsics.from_fov(self.width, self.height, math.radians(self.horizontal_fov_deg))
 
     def camera_to_body(self) -> np.ndarray:
         """4x4 camera (OpenCV axes: x right, y down, z ahead) to body transform."""

@@ -15,8 +15,8 @@ import math
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from .render import PinholeCamera
-from .rover import CAMERA_AXES_IN_HEAD, rotation_y
+from toolbox.camera import Intrinsics
+from toolbox.geometry import CAMERA_AXES_IN_HEAD, rotation_y
 
 MOON_GRAVITY = 1.62  # m/s^2; the same value as toolbox.hopping.parabola (drivers never import it)
 
@@ -56,10 +56,10 @@ class HopperCamera(_Model):
     motion_blur: bool = True
     blur_samples: int = Field(3, ge=1, le=16)
 
-    def intrinsics(self) -> PinholeCamera:
+    def intrinsics(self) -> Intrinsics:
         """Square pixels, principal point at the image centre, the configured vertical field of view."""
         f = (self.height / 2) / math.tan(math.radians(self.vertical_fov_deg) / 2)
-        return PinholeCamera(width=self.width, height=self.height, fx=f, fy=f, cx=(self.width - 1) / 2,
+        return Intrinsics(width=self.width, height=self.height, fx=f, fy=f, cx=(self.width - 1) / 2,
                              cy=(self.height - 1) / 2, k1=self.k1, k2=self.k2)
 
     def to_body(self) -> np.ndarray:

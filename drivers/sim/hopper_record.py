@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from .hopper_config import HopperConfig
-from .render import PinholeCamera
+from toolbox.camera import Intrinsics
 
 FILE_FORMAT = "rvs-sim-hop/1"
 FRAMES_FILE, TRUTH_FILE = "frames.npz", "hop.json"
@@ -28,7 +28,7 @@ class HopRecord:
     (0, 0) before / after) but times and poses are there."""
 
     config: HopperConfig
-    camera: PinholeCamera            # intrinsics of every frame
+    camera: Intrinsics            # intrinsics of every frame
     camera_to_body: np.ndarray       # (4, 4) camera (OpenCV) to body; the body origin is the centre of mass
     seed: int | None                 # the hop's seed (None when a Generator was given)
     exposure_s: float | None         # the exposure used for every frame (None without rendering)
@@ -132,7 +132,7 @@ class HopRecord:
         folder.mkdir(parents=True, exist_ok=True)
         np.savez_compressed(folder / FRAMES_FILE, **{name: getattr(self, name) for name in IMAGE_FIELDS})
         document = {"format": FILE_FORMAT, "config": self.config.model_dump(mode="json"),
-                    "camera": self.camera.model_dump(mode="json"), "camera_to_body": _list(self.camera_to_body),
+                    "camera": self.camera.as_dict(), "camera_to_body": _list(self.camera_to_body),
                     "truth": self.truth()}
         (folder / TRUTH_FILE).write_text(json.dumps(document, indent=1) + "\n")
         return folder
@@ -146,7 +146,7 @@ class HopRecord:
         with np.load(folder / FRAMES_FILE, allow_pickle=False) as data:
             images = {name: data[name] for name in IMAGE_FIELDS}
         return cls(config=HopperConfig.model_validate(document["config"]),
-                   camera=PinholeCamera.model_validate(document["camera"]),
+                   camera=Intrinsics(**document["camera"]),
                    camera_to_body=np.array(document["camera_to_body"]), **images,
                    **_fields_from_truth(document["truth"]))
 

@@ -17,7 +17,8 @@ import numpy as np
 
 from .config import Sun
 from .lighting import shade
-from .render import PinholeCamera, RenderedView, render
+from .render import RenderedView, render
+from toolbox.camera import Intrinsics
 from .rover import Rover
 from .world import World, WorldConfig
 
@@ -138,8 +139,8 @@ def write_pictures(out_dir: Path, world: World) -> list[Path]:
                                             y_range=(0.5, 4.5), outline_min_height=0.05),
                                    "top view 4 m x 4 m north of the start, 5 mm/pixel"))
     rover = Rover(world, x=0.0, y=0.0, heading=math.pi / 2)   # facing north
-    stereo = PinholeCamera.from_fov(1920, 1080, 60.0)
-    tof = PinholeCamera(width=176, height=144, fx=262.92, fy=262.92, cx=88.0, cy=69.0, k1=-0.826, k2=0.656)
+    stereo = Intrinsics.from_fov(1920, 1080, math.radians(60.0))
+    tof = Intrinsics(width=176, height=144, fx=262.92, fy=262.92, cx=88.0, cy=69.0, k1=-0.826, k2=0.656)
     left = rover.sensor_to_world("left", pan_deg=0.0, tilt_deg=-20.0)
     view = render(world, left, stereo)
     white = float(np.percentile(view.intensity[view.hit], 99.5))

@@ -10,79 +10,15 @@ Camera frame as OpenCV: x right, y down, z forward; pixel centres at integer (u,
 """
 from __future__ import annotations
 
-from functools import cached_property, lru_cache
+from functools import cached_property
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+
+from toolbox.camera import Intrinsics
 
 from .config import Sun
 from .lighting import shade
 from .world import World
-
-UNDISTORT_ITERATIONS = 30
-
-
-class PinholeCamera(BaseModel):
-    """Pinhole intrinsics with OpenCV's radial distortion: x_d = x (1 + k1 r^2 + k2 r^4)."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-    width: int = Field(gt=0)
-    height: int = Field(gt=0)
-    fx: float = Field(gt=0)
-    fy: float = Field(gt=0)
-    cx: float
-    cy: float
-    k1: float = 0.0
-    k2: float = 0.0
-
-    @classmethod
-    def from_fov(cls, width: int, height: int, horizontal_fov_deg: float) -> "PinholeCamera":
-        """Square pixels, principal point at the image centre, the given horizontal field of view."""
-        f = (width / 2) / np.tan(np.radians(horizontal_fov_deg) / 2)
-        return cls(width=width, height=height, fx=f, fy=f, cx=(width - 1) / 2, cy=(height - 1) / 2)
-
-    def ray_directions(self) -> np.ndarray:
-        """Unit ray directions (height, width, 3), float32, in the camera frame (read-only, cached)."""
-        return _ray_directions(self.width, self.height, self.fx, self.fy, self.cx, self.cy, self.k1, self.k2)
-
-    def project(self, points_camera: np.ndarray) -> np.ndarray:
-        """Pixel coordinates (..., 2) of camera-frame points (..., 3); NaN behind the camera."""
-        z = points_camera[..., 2]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            x, y = points_camera[..., 0] / z, points_camera[..., 1] / z
-        r2 = x * x + y * y
-        radial = 1 + self.k1 * r2 + self.k2 * r2 * r2
-        uv = np.stack([self.fx * x * radial + self.cx, self.fy * y * radial + self.cy], axis=-1)
-        uv[z <= 0] = np.nan
-        return uv
-
-
-@lru_cache(maxsize=16)
-def _ray_directions(width, height, fx, fy, cx, cy, k1, k2) -> np.ndarray:
-    u, v = np.meshgrid(np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64))
-    x, y = undistort_normalised((u - cx) / fx, (v - cy) / fy, k1, k2)
-    directions = np.stack([x, y, np.ones_like(x)], axis=-1)
-    directions /= np.linalg.norm(directions, axis=-1, keepdims=True)
-    directions = directions.astype(np.float32)
-    directions.flags.writeable = False
-    return directions
-
-
-def undistort_normalised(xd: np.ndarray, yd: np.ndarray, k1: float, k2: float):
-    """Invert x_d = x (1 + k1 r^2 + k2 r^4) by fixed-point iteration (as OpenCV's undistortPoints)."""
-    x, y = xd.copy(), yd.copy()
-    if k1 == 0 and k2 == 0:
-        return x, y
-    for _ in range(UNDISTORT_ITERATIONS):
-        r2 = x * x + y * y
-        radial = 1 + k1 * r2 + k2 * r2 * r2
-        x, y = xd / radial, yd / radial
-    r2 = x * x + y * y
-    residual = np.max(np.hypot(x * (1 + k1 * r2 + k2 * r2 * r2) - xd, y * (1 + k1 * r2 + k2 * r2 * r2) - yd))
-    if not residual < 1e-9:
-        raise ValueError(f"radial distortion k1={k1}, k2={k2} cannot be inverted over this image")
-    return x, y
 
 
 class RenderedView:
@@ -103,7 +39,7 @@ class RenderedView:
     incidence and albedo, and filling unused full-size images costs more than the ray casting.
     """
 
-    def __init__(self, world: World, camera: PinholeCamera, sun: Sun, shadows: bool, sky_intensity: float,
+    def __init__(self, world: World, camera: Intrinsics, sun: Sun, shadows: bool, sky_intensity: float,
                  origin: np.ndarray, directions_camera: np.ndarray, directions: np.ndarray,
                  distance: np.ndarray, triangle: np.ndarray):
         self.camera, self.sun, self.shadows, self.sky_intensity = camera, sun, shadows, sky_intensity
@@ -192,7 +128,7 @@ class RenderedView:
         return out.reshape(self.shape + values.shape[1:])
 
 
-def render(world: World, camera_to_world: np.ndarray, camera: PinholeCamera, sun: Sun | None = None,
+def render(world: World, camera_to_world: np.ndarray, camera: Intrinsics, sun: Sun | None = None,
            shadows: bool = True, sky_intensity: float = 0.0) -> RenderedView:
     """Cast `camera`'s rays from pose `camera_to_world` (4x4, camera frame to world) into `world`.
 

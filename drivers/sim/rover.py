@@ -26,10 +26,9 @@ import math
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from .world import World
+from toolbox.geometry import CAMERA_AXES_IN_HEAD, rotation_rpy, rotation_x, rotation_y, rotation_z
 
-# OpenCV camera axes expressed in the head frame: x right = -y, y down = -z, z forward = +x.
-CAMERA_AXES_IN_HEAD = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+from .world import World
 
 
 class _Model(BaseModel):
@@ -219,23 +218,3 @@ def _perturbed(mount: SensorMount, error: MountError, rng: np.random.Generator) 
     return SensorMount(
         position_m=tuple(float(v) for v in np.add(mount.position_m, rng.normal(0.0, error.translation_m, 3))),
         rotation_deg=tuple(float(v) for v in np.add(mount.rotation_deg, rng.normal(0.0, error.rotation_deg, 3))))
-
-
-def rotation_x(angle: float) -> np.ndarray:
-    c, s = math.cos(angle), math.sin(angle)
-    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
-
-
-def rotation_y(angle: float) -> np.ndarray:
-    c, s = math.cos(angle), math.sin(angle)
-    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
-
-
-def rotation_z(angle: float) -> np.ndarray:
-    c, s = math.cos(angle), math.sin(angle)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
-def rotation_rpy(roll: float, pitch: float, yaw: float) -> np.ndarray:
-    """Rz(yaw) @ Ry(pitch) @ Rx(roll): roll about x first, then pitch about y, then yaw about z."""
-    return rotation_z(yaw) @ rotation_y(pitch) @ rotation_x(roll)

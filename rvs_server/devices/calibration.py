@@ -13,7 +13,8 @@ from typing import Any, Literal
 from pydantic import Field
 
 from rvs_server.config import Settings
-from toolbox.geometry import Intrinsics, SensorMount
+from toolbox.camera import Intrinsics
+from toolbox.geometry import SensorMount
 
 Vector = tuple[float, float, float]
 

@@ -65,7 +65,7 @@ import cv2
 import numpy as np
 import pycolmap
 
-from toolbox.geometry import Intrinsics
+from toolbox.camera import Intrinsics
 from toolbox.mapping.stereo import Rectification, SgbmConfig, stereo_points
 
 __all__ = ["SfmConfig", "HopReconstruction", "reconstruct_hop", "as_intrinsics", "colmap_camera",

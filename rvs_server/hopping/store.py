@@ -22,7 +22,7 @@ import numpy as np
 
 from rvs_server.files import atomic_file, save_npz_atomic
 from rvs_server.hopping.sfm import HopReconstruction
-from toolbox.geometry import Intrinsics
+from toolbox.camera import Intrinsics
 
 HOP_FORMAT = "rvs-hop/1"
 HOP_NAME = re.compile(r"hop-(\d{3,})")

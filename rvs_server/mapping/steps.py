@@ -16,7 +16,8 @@ from pydantic import Field
 from rvs_server.config import Range
 from toolbox.mapping import dem as dem_tools
 from toolbox.mapping import hazard as hazard_tools
-from toolbox.geometry import Intrinsics, RoverPose, camera_to_world, footprint_polygon, relative_pose
+from toolbox.camera import Intrinsics
+from toolbox.geometry import RoverPose, camera_to_world, footprint_polygon, relative_pose
 from toolbox.mapping.localisation import AlignConfig, align_to_map, apply
 from toolbox.mapping.ortho import merge_views, ortho_image
 from toolbox.mapping.stereo import SgbmConfig, StereoCalibration, rectification, stereo_points

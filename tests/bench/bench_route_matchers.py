@@ -35,14 +35,15 @@ REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO))
 from drivers.avt_sensor import sensor_image  # noqa: E402
 from drivers.sim.config import Sun, WorldConfig  # noqa: E402
-from drivers.sim.render import PinholeCamera, render  # noqa: E402
+from drivers.sim.render import render  # noqa: E402
+from toolbox.camera import Intrinsics
 from drivers.sim.rover import Rover  # noqa: E402
 from drivers.sim.world import World  # noqa: E402
 from rvs_server.routes.store import Action, RouteStore, RouteStoreConfig  # noqa: E402
 from toolbox.routes.match import (ContourConfig, ContourMatcher, FeatureMatcher,  # noqa: E402
                                              heading_offset, rank_route)
 
-CAMERA = PinholeCamera.from_fov(640, 480, 60.0)
+CAMERA = Intrinsics.from_fov(640, 480, math.radians(60.0))
 TILT_DEG = -20.0
 EXPOSURE_US = 5000.0
 SAME_DISTANCE_M, SAME_HEADING_DEG, DIFFERENT_DISTANCE_M = 0.5, 10.0, 3.0

@@ -16,12 +16,13 @@ import time
 import numpy as np
 
 from drivers.sim.config import WorldConfig
-from drivers.sim.render import PinholeCamera, camera_rays, render
+from drivers.sim.render import camera_rays, render
+from toolbox.camera import Intrinsics
 from drivers.sim.rover import Rover
 from drivers.sim.world import World
 
-SR4000 = PinholeCamera(width=176, height=144, fx=262.92, fy=262.92, cx=88.0, cy=69.0, k1=-0.826, k2=0.656)
-HD = PinholeCamera.from_fov(1920, 1080, 60.0)
+SR4000 = Intrinsics(width=176, height=144, fx=262.92, fy=262.92, cx=88.0, cy=69.0, k1=-0.826, k2=0.656)
+HD = Intrinsics.from_fov(1920, 1080, math.radians(60.0))
 
 
 def peak_rss_mib() -> float:
@@ -54,7 +55,7 @@ def measure_build(config: WorldConfig) -> World:
     return world
 
 
-def measure_render(world: World, camera: PinholeCamera, pose: np.ndarray, repeats: int) -> None:
+def measure_render(world: World, camera: Intrinsics, pose: np.ndarray, repeats: int) -> None:
     directions = camera.ray_directions().reshape(-1, 3) @ pose[:3, :3].T.astype(np.float32)
     rays = camera_rays(pose[:3, 3], directions)
     raw = median_ms(lambda: world.surface.cast(rays), repeats)

@@ -25,7 +25,8 @@ from drivers.sim.config import WorldConfig  # noqa: E402
 from drivers.sim.render import render  # noqa: E402
 from drivers.sim.rover import Rover  # noqa: E402
 from drivers.sim.world import World  # noqa: E402
-from toolbox.geometry import Intrinsics, project, relative_pose  # noqa: E402
+from toolbox.camera import Intrinsics, project  # noqa: E402
+from toolbox.geometry import relative_pose  # noqa: E402
 from toolbox.mapping.stereo import StereoCalibration, rectification, stereo_points  # noqa: E402
 
 

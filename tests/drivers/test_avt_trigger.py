@@ -30,7 +30,8 @@ from drivers.errors import DeviceFault, DeviceTimeout
 from drivers.sim.clock import SimClock
 from drivers.sim.config import Sun
 from drivers.sim.faults import InjectedFaults
-from drivers.sim.render import PinholeCamera, render
+from drivers.sim.render import render
+from toolbox.camera import Intrinsics
 from drivers.sim.rover import Rover
 from drivers.sim.world import World, WorldConfig
 from drivers.trigger import (PPCLAIM, PPDATADIR, PPEXCL, PPRELEASE, PPWDATA, EmulatedTrigger, PpdevTrigger,
@@ -434,11 +435,11 @@ def test_moving_the_sun_changes_the_image(world, rover):
 # Stereo depth from the emulated pair against the ray-cast truth
 # --------------------------------------------------------------------------------------------
 
-def _matrix(camera: PinholeCamera) -> np.ndarray:
+def _matrix(camera: Intrinsics) -> np.ndarray:
     return np.array([[camera.fx, 0.0, camera.cx], [0.0, camera.fy, camera.cy], [0.0, 0.0, 1.0]])
 
 
-def _distortion(camera: PinholeCamera) -> np.ndarray:
+def _distortion(camera: Intrinsics) -> np.ndarray:
     return np.array([camera.k1, camera.k2, 0.0, 0.0, 0.0])
 
 
@@ -476,7 +477,7 @@ def test_stereo_depth_from_the_emulated_pair_matches_the_ray_cast_truth(world, r
     rectified_pose = left.pose_at(0.0).copy()
     rectified_pose[:3, :3] = rectified_pose[:3, :3] @ r1.T
     camera = left.intrinsics()
-    truth = render(world, rectified_pose, PinholeCamera(width=camera.width, height=camera.height, fx=p1[0, 0],
+    truth = render(world, rectified_pose, Intrinsics(width=camera.width, height=camera.height, fx=p1[0, 0],
                                                         fy=p1[1, 1], cx=p1[0, 2], cy=p1[1, 2])).depth
     in_band = (truth >= 2.0) & (truth <= 6.0)
     valid = in_band & np.isfinite(depth)

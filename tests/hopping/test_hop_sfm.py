@@ -16,7 +16,8 @@ from drivers.sim.config import WorldConfig
 from drivers.sim.hopper import Hopper, HopperConfig, HopRecord
 from drivers.sim.world import World
 from rvs_server.hopping import sfm as hop_sfm
-from toolbox.geometry import Intrinsics, project, rotation_x, rotation_y
+from toolbox.camera import Intrinsics, project
+from toolbox.geometry import rotation_x, rotation_y
 from toolbox.hopping import process_hop
 
 # A mild barrel distortion, so the known-intrinsics path carries k1 and k2 through COLMAP and rectification.

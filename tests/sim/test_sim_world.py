@@ -11,12 +11,13 @@ import numpy as np
 import pytest
 
 from drivers.sim.config import Sun, WorldConfig
-from drivers.sim.render import PinholeCamera, render
+from drivers.sim.render import render
+from toolbox.camera import Intrinsics
 from drivers.sim.rover import Rover
 from drivers.sim.world import World
 
 SMALL = WorldConfig(seed=3, size_m=(10.0, 10.0))
-SR4000 = PinholeCamera(width=176, height=144, fx=262.92, fy=262.92, cx=88.0, cy=69.0, k1=-0.826, k2=0.656)
+SR4000 = Intrinsics(width=176, height=144, fx=262.92, fy=262.92, cx=88.0, cy=69.0, k1=-0.826, k2=0.656)
 
 
 @pytest.fixture(scope="module")
@@ -126,7 +127,7 @@ def test_no_rock_in_the_clear_start_circle(world):
 
 # ------------------------------------------------------------------------------------ truth
 def test_rendered_hits_lie_on_the_truth_surface(world):
-    for camera in (SR4000, PinholeCamera.from_fov(640, 480, 60.0)):
+    for camera in (SR4000, Intrinsics.from_fov(640, 480, math.radians(60.0))):
         view = render(world, ground_view_pose(world), camera)
         points = view.points[view.hit]
         assert len(points) > 0.5 * camera.width * camera.height
@@ -191,7 +192,7 @@ def test_shadows_fall_on_the_side_away_from_the_sun(world):
 
 
 def test_moving_the_sun_changes_the_image_but_not_the_geometry(world):
-    pose, camera = ground_view_pose(world), PinholeCamera.from_fov(320, 240, 60.0)
+    pose, camera = ground_view_pose(world), Intrinsics.from_fov(320, 240, math.radians(60.0))
     teach = render(world, pose, camera, sun=Sun(azimuth_deg=135.0, elevation_deg=35.0))
     repeat = render(world, pose, camera, sun=Sun(azimuth_deg=165.0, elevation_deg=20.0))
     assert np.array_equal(teach.range, repeat.range)
@@ -230,12 +231,12 @@ def test_render_outputs_agree_with_each_other(world):
 
 
 def test_a_camera_looking_at_the_sky_hits_nothing(world):
-    view = render(world, look_at([0, 0, 2.0], [0, 10, 12.0]), PinholeCamera.from_fov(64, 48, 30.0))
+    view = render(world, look_at([0, 0, 2.0], [0, 10, 12.0]), Intrinsics.from_fov(64, 48, math.radians(30.0)))
     assert not view.hit.any()
 
 
 def test_rover_camera_sees_the_ground_ahead(world):
     rover = Rover(world, heading=math.pi / 2)
-    view = render(world, rover.sensor_to_world("left", tilt_deg=-30.0), PinholeCamera.from_fov(160, 120, 60.0))
+    view = render(world, rover.sensor_to_world("left", tilt_deg=-30.0), Intrinsics.from_fov(160, 120, math.radians(60.0)))
     assert view.hit.mean() > 0.9
     assert np.median(view.points[view.hit][:, 1]) > 1.0          # north of the rover, where it looks

@@ -13,7 +13,8 @@ from hypothesis.extra.numpy import arrays
 
 from drivers.avt_sensor import sensor_image
 from drivers.sim.config import Sun, WorldConfig
-from drivers.sim.render import PinholeCamera, render
+from drivers.sim.render import render
+from toolbox.camera import Intrinsics
 from drivers.sim.rover import Rover
 from drivers.sim.world import World
 from toolbox.routes.match import (ContourConfig, ContourMatcher, FeatureConfig,
@@ -215,7 +216,7 @@ def test_heading_offset_sign_and_size():
 
 # ============================================================================ rendered views
 
-CAMERA = PinholeCamera.from_fov(640, 480, 60.0)
+CAMERA = Intrinsics.from_fov(640, 480, math.radians(60.0))
 TILT_DEG = -20.0
 # The world's own sun is azimuth 135, elevation 35; these move it 40 degrees and 12-13 in elevation.
 SUN_LATER = Sun(azimuth_deg=175.0, elevation_deg=23.0)

@@ -8,11 +8,12 @@ import open3d as o3d
 import pytest
 
 from toolbox.mapping import dem as D
+from toolbox.camera import Intrinsics
 from toolbox import geometry as g
 from toolbox.mapping import ortho as O
 from toolbox.grid import GridSpec
 
-SR4000 = g.Intrinsics.from_fov(176, 144, math.radians(43.6))
+SR4000 = Intrinsics.from_fov(176, 144, math.radians(43.6))
 
 
 def plane_heights(spec: GridSpec, gx: float = 0.1, gy: float = -0.05, z0: float = 1.0) -> np.ndarray:
@@ -217,7 +218,7 @@ def wall_scene():
     heights[:, 40:42] = 0.5
     mount = g.SensorMount.from_offsets((0.0, 0.0, 1.0), (0.0, 0.0, 0.0))
     pose = g.camera_to_world(g.RoverPose(0.0, 0.0), mount, 0.0, math.radians(-20))
-    intrinsics = g.Intrinsics.from_fov(320, 240, math.radians(70))
+    intrinsics = Intrinsics.from_fov(320, 240, math.radians(70))
     return spec, heights, pose, intrinsics
 
 
@@ -256,7 +257,7 @@ def test_ortho_samples_the_picture_and_hides_what_the_wall_hides(use_depth_image
 def test_merging_prefers_the_closer_view():
     spec = GridSpec(0.0, -1.0, 0.05, 40, 80)
     heights = np.zeros(spec.shape, np.float32)
-    intrinsics = g.Intrinsics.from_fov(320, 240, math.radians(90))
+    intrinsics = Intrinsics.from_fov(320, 240, math.radians(90))
     mount = g.SensorMount.from_offsets((0.0, 0.0, 1.5), (0.0, 0.0, 0.0))
     near = g.camera_to_world(g.RoverPose(3.0, 0.0, heading=math.pi), mount, 0.0, math.radians(-45))
     far = g.camera_to_world(g.RoverPose(-1.0, 0.0), mount, 0.0, math.radians(-30))

@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from drivers.sim.config import WorldConfig
-from drivers.sim.render import PinholeCamera
+from toolbox.camera import Intrinsics, project
 from drivers.sim.rover import Rover
 from drivers.sim.world import World
 from toolbox import geometry as g
@@ -96,16 +96,18 @@ def test_rigid_helpers(roll, pitch, yaw, tx, ty):
     assert np.allclose(g.relative_pose(pose, other), np.linalg.inv(other) @ pose)
 
 
-def test_projection_matches_the_simulator_and_opencv():
-    intrinsics = g.Intrinsics(176, 144, 262.9, 262.9, 88.0, 69.0, k1=-0.3, k2=0.1)
-    sim = PinholeCamera(width=176, height=144, fx=262.9, fy=262.9, cx=88.0, cy=69.0, k1=-0.3, k2=0.1)
+def test_projection_matches_opencv_and_the_rays_the_simulator_casts():
+    intrinsics = Intrinsics(176, 144, 262.9, 262.9, 88.0, 69.0, k1=-0.3, k2=0.1)
     rng = np.random.default_rng(0)
     points = np.c_[rng.uniform(-1, 1, (50, 2)), rng.uniform(1, 5, 50)]
-    ours = g.project(points, intrinsics)
-    assert np.allclose(ours, sim.project(points), atol=1e-9)
+    ours = project(points, intrinsics)
     opencv, _ = cv2.projectPoints(points, np.zeros(3), np.zeros(3), intrinsics.matrix, intrinsics.distortion)
     assert np.allclose(ours, opencv[:, 0], atol=1e-6)
-    assert np.isnan(g.project(np.array([[0.0, 0.0, -1.0]]), intrinsics)).all()
+    # the renderer casts ray_directions(): each pixel's ray must project back onto that pixel
+    rays = intrinsics.ray_directions().astype(np.float64)
+    v, u = np.mgrid[0:intrinsics.height, 0:intrinsics.width]
+    assert np.allclose(project(rays, intrinsics), np.stack([u, v], axis=-1), atol=1e-3)
+    assert np.isnan(project(np.array([[0.0, 0.0, -1.0]]), intrinsics)).all()
 
 
 def test_footprint_matches_the_simulator(world):
@@ -171,13 +173,13 @@ def test_serpentine_order_keeps_travel_short():
 
 
 def test_in_view_agrees_with_the_projection():
-    intrinsics = g.Intrinsics.from_fov(176, 144, SR4000_FOV[0])
+    intrinsics = Intrinsics.from_fov(176, 144, SR4000_FOV[0])
     fov = (SR4000_FOV[0], 2 * math.atan(intrinsics.height / 2 / intrinsics.fy))
     mount = g.SensorMount(ptu_position=(0.0, 0.0, 0.0), camera_to_head=g.rigid(g.CAMERA_AXES_IN_HEAD))
     view_pan, view_tilt = 0.6, -0.5
     to_camera = g.invert(g.camera_to_rover(mount, view_pan, view_tilt))
     pans, tilts = sample_directions((0.0, 1.2), (-1.0, 0.0), 60)
-    uv = g.project(g.apply(to_camera, g.direction_of(pans, tilts)), intrinsics)
+    uv = project(g.apply(to_camera, g.direction_of(pans, tilts)), intrinsics)
     inside = (np.abs(uv[..., 0] - intrinsics.cx) <= intrinsics.width / 2) & \
         (np.abs(uv[..., 1] - intrinsics.cy) <= intrinsics.height / 2)
     assert np.array_equal(v.in_view(view_pan, view_tilt, *fov, pans, tilts), inside)

@@ -8,7 +8,8 @@ import pytest
 from scipy import ndimage
 
 from drivers.sim.config import WorldConfig
-from drivers.sim.render import PinholeCamera, render
+from drivers.sim.render import render
+from toolbox.camera import Intrinsics
 from drivers.sim.rover import Rover
 from drivers.sim.world import World
 from toolbox.mapping import dem as D
@@ -153,7 +154,7 @@ def scene():
     mounts (as RVS would), through the DEM chain at 3 cm."""
     world = World.build(WorldConfig(seed=3, size_m=(8.0, 8.0), craters={"count": 0}))
     rover = Rover(world, x=0.0, y=0.0, heading=0.3)
-    camera = PinholeCamera.from_fov(176, 144, 43.6)
+    camera = Intrinsics.from_fov(176, 144, math.radians(43.6))
     rays = camera.ray_directions().astype(np.float64)
     fov = (math.radians(43.6), 2 * math.atan(72 / camera.fy))
     views = V.plan_views((-math.pi, math.pi), (math.radians(-65), math.radians(-20)), *fov, overlap=0.1)

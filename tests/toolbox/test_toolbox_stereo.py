@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from drivers.sim.config import WorldConfig
-from drivers.sim.render import PinholeCamera, render
+from drivers.sim.render import render
+from toolbox.camera import Intrinsics, project
 from drivers.sim.rover import Rover
 from drivers.sim.world import World
 from toolbox.mapping import dem as D
@@ -17,7 +18,7 @@ from toolbox.mapping import stereo as S
 from toolbox.grid import GridSpec
 
 WIDTH, HEIGHT = 320, 240
-IDEAL = g.Intrinsics.from_fov(WIDTH, HEIGHT, math.radians(60))
+IDEAL = Intrinsics.from_fov(WIDTH, HEIGHT, math.radians(60))
 
 
 def ideal_rig(baseline: float = 0.25) -> S.StereoCalibration:
@@ -40,15 +41,15 @@ def shifted(image: np.ndarray, disparity: np.ndarray) -> np.ndarray:
 
 
 def test_rectification_makes_rows_match():
-    left = g.Intrinsics(WIDTH, HEIGHT, 300.0, 302.0, 161.0, 118.0, k1=-0.12, k2=0.03)
-    right = g.Intrinsics(WIDTH, HEIGHT, 298.0, 299.0, 158.0, 121.0, k1=-0.10, k2=0.02)
+    left = Intrinsics(WIDTH, HEIGHT, 300.0, 302.0, 161.0, 118.0, k1=-0.12, k2=0.03)
+    right = Intrinsics(WIDTH, HEIGHT, 298.0, 299.0, 158.0, 121.0, k1=-0.10, k2=0.02)
     left_to_right = g.rigid(g.rotation_rpy(0.01, -0.02, 0.015), (-0.25, 0.004, -0.003))
     rect = S.rectification(S.StereoCalibration(left, right, left_to_right))
     assert rect.baseline == pytest.approx(0.25, rel=1e-3)
     rng = np.random.default_rng(0)
     points = np.c_[rng.uniform(-1, 1, (200, 2)), rng.uniform(2, 8, 200)]            # left camera frame
-    in_left = g.project(points, left)
-    in_right = g.project(g.apply(left_to_right, points), right)
+    in_left = project(points, left)
+    in_right = project(g.apply(left_to_right, points), right)
     rect_left = cv2.undistortPoints(in_left[:, None], left.matrix, left.distortion, R=rect.left_rotation,
                                     P=rect.left_projection)[:, 0]
     rect_right = cv2.undistortPoints(in_right[:, None], right.matrix, right.distortion, R=rect.right_rotation,
@@ -155,8 +156,7 @@ def test_simulated_stereo_dem():
     (a quarter pixel of disparity is 2 cm of range at 3 m for this 0.25 m rig)."""
     world = World.build(WorldConfig(seed=3, size_m=(8.0, 8.0), craters={"count": 0}))
     rover = Rover(world, heading=0.3)
-    camera = PinholeCamera.from_fov(480, 360, 60.0)
-    intrinsics = g.Intrinsics(camera.width, camera.height, camera.fx, camera.fy, camera.cx, camera.cy)
+    camera = intrinsics = Intrinsics.from_fov(480, 360, math.radians(60.0))
     views = [render(world, rover.sensor_to_world(side, 0.0, -35.0), camera) for side in ("left", "right")]
     images = [view.intensity for view in views]
     left_pose, right_pose = (rover.sensor_to_world(side, 0.0, -35.0, calibrated=True) for side in ("left", "right"))

@@ -21,7 +21,8 @@ from typing import Sequence
 import numpy as np
 import open3d as o3d
 
-from toolbox.geometry import Intrinsics, apply, invert, project
+from toolbox.camera import Intrinsics, project
+from toolbox.geometry import apply, invert
 from toolbox.grid import GridSpec
 
 # Metres a cell may lie behind the surface that hides it and still count as seen (range noise, the

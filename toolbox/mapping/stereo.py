@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from toolbox.geometry import Intrinsics
+from toolbox.camera import Intrinsics
 
 # StereoSGBM returns disparities in fixed point, 4 fractional bits.
 DISPARITY_SCALE = 16.0
