@@ -12,6 +12,7 @@ from pathlib import Path
 
 from drivers.sim.clock import SimClock
 from drivers.sim.config import WorldConfig
+from drivers.sim.faults import FAULT_DEVICES  # noqa: F401  the devices a fault can be injected into (sim-fault)
 from drivers.sim.testbed import SimulatedTestbed
 
 from ..config import Settings

@@ -53,14 +53,13 @@ TOF_IMAGES = {
 @module.job("grab-tof", GrabTofConfig, devices=("tof",))
 def grab_tof(ctx: JobContext, cfg: GrabTofConfig) -> dict[str, Any]:
     """Acquire (and average) SR4000 frames; TIFF of raw values, false-colour PNG with a legend."""
-    from drivers.sr4000 import grab
     camera = ctx.devices.tof.require()
     product = ctx.product(cfg)
     ctx.progress(5, "waiting for auto exposure")
     ctx.safe_point()
     started = time.perf_counter()
-    result = grab(camera, frames=cfg.frames, min_confidence=cfg.min_confidence,
-                  settle_frames=ctx.settings.settle_frames)
+    result = ctx.devices.tof.grab(frames=cfg.frames, min_confidence=cfg.min_confidence,
+                                  settle_frames=ctx.settings.settle_frames)
     product.timing("acquisition", time.perf_counter() - started)
     ctx.progress(70, f"{cfg.frames} frame(s) averaged; writing")
     ctx.safe_point()

@@ -120,7 +120,6 @@ def each_view(step: StepContext, views: dict, take: Callable[[int, tuple[float, 
 @operations.register("acquire.tof", AcquireTofParams, inputs=("views",))
 def acquire_tof(step: StepContext, params: AcquireTofParams, views: dict) -> dict[str, Any]:
     """For each view: point the PTU, grab (averaged) SR4000 frames, keep the points and their pose."""
-    from drivers.sr4000 import grab
     job = step.job
     camera = job.devices.tof.require()
     mount = job.server.calibration().mounts["tof"]
@@ -128,8 +127,8 @@ def acquire_tof(step: StepContext, params: AcquireTofParams, views: dict) -> dic
 
     def take(index: int, measured: tuple[float, float]) -> dict:
         _repeatable(camera, index, step.load_partial(f"exposure{index - 1:03d}"))
-        result = grab(camera, frames=params.frames, min_confidence=params.min_confidence,
-                      settle_frames=params.settle_frames)
+        result = job.devices.tof.grab(frames=params.frames, min_confidence=params.min_confidence,
+                                      settle_frames=params.settle_frames)
         step.save_partial(f"exposure{index:03d}", {"integration_time": int(camera.integration_time())})
         frame = result.frame
         return {"points_camera": frame.xyz().astype(np.float32), "valid": result.defined,

@@ -12,9 +12,9 @@ from typing import TYPE_CHECKING, Any, Literal
 
 from pydantic import Field
 
-from drivers.sim.faults import FAULT_DEVICES
 
 from rvs_server.config import CommandConfig
+from rvs_server.devices import FAULT_DEVICES
 from rvs_server.dispatch import Call, Module
 from rvs_server.protocol import BadRequest, WrongMode
 
@@ -24,7 +24,7 @@ if TYPE_CHECKING:
 module = Module("simulation", summary="the simulated world: injected device faults")
 
 FaultDevice = Literal["ptu", "tof", "camera-left", "camera-right", "trigger"]
-assert set(FaultDevice.__args__) == set(FAULT_DEVICES)  # one list of devices, in drivers/sim/faults.py
+assert set(FaultDevice.__args__) == set(FAULT_DEVICES)  # one list of devices, drivers/sim/faults.py's
 
 
 class SimFaultConfig(CommandConfig):
