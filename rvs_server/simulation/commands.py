@@ -12,7 +12,6 @@ from typing import TYPE_CHECKING, Any, Literal
 
 from pydantic import Field
 
-
 from rvs_server.config import CommandConfig
 from rvs_server.devices import FAULT_DEVICES
 from rvs_server.dispatch import Call, Module
