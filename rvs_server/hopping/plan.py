@@ -16,7 +16,7 @@ import math
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 import pycolmap
@@ -30,11 +30,9 @@ from toolbox.geometry import apply
 from toolbox.hopping import LandingParams, LandingPlan, NoGroundError, plan_landing
 from rvs_server.hopping.estimate import EstimateError, EstimateParams, HopEstimate, estimate_hop, flight_check
 from rvs_server.hopping.pictures import plan_pictures, trajectory_picture, truth_target_picture
+from rvs_server.hopping.settings import HoppingSettings
 from rvs_server.hopping.store import (HopObservation, cloud_of, load_observation, load_reconstruction, load_truth, read_ply,
                             save_reconstruction, write_ply)
-
-if TYPE_CHECKING:   # hopping.py imports this module
-    from rvs_server.hopping.commands import HoppingSettings
 
 FRAME_NOTE = ("world frame: x east, y north, z up, metres, heights relative to the start's ground; positions "
               "are the hopper's centre of mass; headings degrees counter-clockwise from east")

@@ -59,12 +59,13 @@ import time
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Literal, get_args
+from typing import get_args
 
 import cv2
 import numpy as np
 import pycolmap
 
+from rvs_server.hopping.settings import Mapper
 from toolbox.camera import Intrinsics
 from toolbox.mapping.stereo import Rectification, SgbmConfig, stereo_points
 
@@ -73,7 +74,6 @@ __all__ = ["SfmConfig", "HopReconstruction", "reconstruct_hop", "as_intrinsics",
            "pair_rectification", "consistent_points", "voxel_average", "similarity_umeyama"]
 
 IMAGE_DIGITS = 4
-Mapper = Literal["global", "incremental"]
 MAPPERS = get_args(Mapper)
 
 
