@@ -302,9 +302,9 @@ class JobContext:
 
     def save_truth(self, product: Any) -> None:
         """With simulated devices, the simulator's truth of this instant goes to truth/."""
-        devices = self.devices
-        if devices.simulated and devices.testbed.ready:
-            product.write_json("truth/state.json", devices.testbed.truth(),
+        truth = self.devices.truth
+        if truth is not None:
+            product.write_json("truth/state.json", truth.state(),
                                "simulator truth of the moment: rover pose, PTU angles, sensor poses (world frame)")
 
     def finish_product(self, product: Any) -> dict[str, Any]:

@@ -20,6 +20,7 @@ from .base import Device, Health
 from .cameras import CamerasDeviceConfig, StereoDevice
 from .ptu import PtuDevice, PtuDeviceConfig
 from .tof import TofDevice, TofDeviceConfig
+from .truth import GroundTruth
 
 
 class DevicesConfig(Settings):
@@ -70,6 +71,11 @@ class Devices:
         """True when the sensors run on the simulator, so products can carry its truth."""
         c = self.config
         return any(d.enabled and d.backend == "sim" for d in (c.tof, c.cameras))
+
+    @property
+    def truth(self) -> GroundTruth | None:
+        """The simulator's truth for the products, once its world is built; None with real sensors."""
+        return GroundTruth(self.testbed) if self.simulated and self.testbed.ready else None
 
     def open_all(self) -> None:
         for device in self:

@@ -21,6 +21,7 @@ from rvs_server.files import atomic_file
 from rvs_server.jobs import JobContext
 from rvs_server.mapping.steps import operations
 from rvs_server.protocol import BadRequest
+from rvs_server.products.ply import write_ply
 from rvs_server.products.rasters import write_geotiff, write_png
 from toolbox.colour import categorical, colourise, upscale, with_colour_bar, with_key, with_title
 from toolbox.grid import GridSpec
@@ -229,10 +230,10 @@ def write_maps(ctx: JobContext, product: Any, results: dict[str, Any],
 
 
 def truth_obstacle_picture(ctx: JobContext, spec: GridSpec, step: float) -> np.ndarray | None:
-    devices = ctx.devices
-    if not (devices.simulated and devices.testbed.ready):
+    truth = ctx.devices.truth
+    if truth is None:
         return None
-    obstacles = devices.testbed.world.obstacle_mask(step, spec.cell, spec.x_range, spec.y_range)
+    obstacles = truth.obstacle_mask(step, spec.cell, spec.x_range, spec.y_range)
     rgb = categorical(obstacles[:spec.rows, :spec.cols].astype(np.uint8), {0: (70, 160, 70), 1: (220, 60, 50)})
     return with_key(_north_up(rgb), [("clear", (70, 160, 70)), (f"rock > {step} m", (220, 60, 50))],
                     "truth: obstacles")
@@ -252,17 +253,16 @@ def side_by_side(panels: list[np.ndarray], gap: int = 8) -> np.ndarray:
 
 def write_truth_grids(ctx: JobContext, product: Any, spec: GridSpec, acquired: dict | None,
                       truth_step: float) -> None:
-    devices = ctx.devices
-    if not (devices.simulated and devices.testbed.ready):
+    truth = ctx.devices.truth
+    if truth is None:
         return
-    world = devices.testbed.world
     x_range, y_range = spec.x_range, spec.y_range
-    truth_height = world.height_map(spec.cell, x_range, y_range).astype(np.float32)
+    truth_height = truth.height_map(spec.cell, x_range, y_range).astype(np.float32)
     write_geotiff(product.add("truth/height.tif", "true height at each cell centre, metres"),
                   truth_height[:spec.rows, :spec.cols], spec, "truth height")
-    cell = max(spec.cell, world.grid.cell)
+    cell = max(spec.cell, truth.cell)
     if abs(cell - spec.cell) < 1e-12:
-        obstacles = world.obstacle_mask(truth_step, spec.cell, x_range, y_range)
+        obstacles = truth.obstacle_mask(truth_step, spec.cell, x_range, y_range)
         write_geotiff(product.add("truth/obstacles.tif", f"1 where a rock stands more than {truth_step} m "
                                   "above the rock-free ground (drivers/sim/world.py obstacle_mask)"),
                       obstacles[:spec.rows, :spec.cols].astype(np.float32), spec, "truth obstacles")
@@ -274,16 +274,6 @@ def write_truth_grids(ctx: JobContext, product: Any, spec: GridSpec, acquired: d
     if acquired is not None:
         product.write_json("truth/views.json", [np.asarray(v.get("true_camera_to_world", np.full((4, 4), np.nan))).tolist()
                                                 for v in acquired["views"]], "true camera-to-world pose of each view")
-
-
-def write_ply(path: Path, points: np.ndarray) -> None:
-    """Binary little-endian PLY of float32 x, y, z: what Open3D, CloudCompare and MeshLab read."""
-    points = np.ascontiguousarray(np.asarray(points, dtype=np.float32).reshape(-1, 3))
-    header = (f"ply\nformat binary_little_endian 1.0\ncomment RVS world frame, metres\n"
-              f"element vertex {len(points)}\nproperty float x\nproperty float y\nproperty float z\nend_header\n")
-    with atomic_file(path) as handle:
-        handle.write(header.encode("ascii"))
-        handle.write(points.astype("<f4").tobytes())
 
 
 # ---------------------------------------------------------------------------------------------
