@@ -306,7 +306,8 @@ class Dispatcher:
             if spec.kind == "job":
                 outcome: Any = self.start_job(spec, cfg, request.line or request.command, sink)
             else:
-                outcome = spec.handler(Call(self.server, session, request, sink, spec.module.name if spec.module else None), cfg)
+                module = spec.module.name if spec.module else None
+                outcome = spec.handler(Call(self.server, session, request, sink, module), cfg)
         except RvsError as exc:
             sink.error(exc)
             return
