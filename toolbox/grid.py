@@ -5,6 +5,9 @@ covers x in [origin_x + col * cell, origin_x + (col + 1) * cell) and y in
 [origin_y + row * cell, origin_y + (row + 1) * cell): rows count northwards, columns eastwards,
 so array indices and world axes agree without flips. Pictures and GeoTIFFs show north up, which
 is the array flipped on its first axis; the writers do that, never the algorithms.
+
+MapLayers is the layered map on one grid that the families exchange: terrain cost, hazard and
+unknown, as the maps produce them and the planners read them.
 """
 from __future__ import annotations
 
@@ -72,3 +75,37 @@ class GridSpec:
     def from_json(cls, data: dict) -> "GridSpec":
         return cls(float(data["origin_x"]), float(data["origin_y"]), float(data["cell"]),
                    int(data["rows"]), int(data["cols"]))
+
+
+@dataclass(frozen=True)
+class MapLayers:
+    """Cost, hazard and unknown layers over one grid. Hazard cells cost +inf and count as known;
+    unknown cells cost NaN (their cost is the unknown policy's to give)."""
+
+    spec: GridSpec
+    cost: np.ndarray
+    hazard: np.ndarray
+    unknown: np.ndarray
+
+    def __post_init__(self) -> None:
+        cost = np.asarray(self.cost, dtype=np.float64)
+        hazard = np.asarray(self.hazard, dtype=bool)
+        unknown = np.asarray(self.unknown, dtype=bool) & ~hazard
+        for name, layer in (("cost", cost), ("hazard", hazard), ("unknown", unknown)):
+            if layer.shape != self.spec.shape:
+                raise ValueError(f"{name} layer is {layer.shape}, the grid is {self.spec.shape}")
+        known = ~unknown & ~hazard
+        if np.isnan(cost[known]).any():
+            raise ValueError("known cells hold NaN cost; mark them unknown")
+        if (cost[known] < 0).any():
+            raise ValueError("costs must be >= 0")
+        object.__setattr__(self, "cost", np.where(hazard, np.inf, np.where(unknown, np.nan, cost)))
+        object.__setattr__(self, "hazard", hazard)
+        object.__setattr__(self, "unknown", unknown)
+
+    @classmethod
+    def from_cost(cls, spec: GridSpec, cost: np.ndarray, hazard: np.ndarray | None = None) -> "MapLayers":
+        """Layers from a cost grid whose NaN cells are unknown."""
+        cost = np.asarray(cost, dtype=np.float64)
+        hazard = np.zeros(cost.shape, dtype=bool) if hazard is None else hazard
+        return cls(spec, cost, hazard, np.isnan(cost))

@@ -20,45 +20,11 @@ from typing import Sequence
 import numpy as np
 from scipy.ndimage import binary_fill_holes, label
 
-from toolbox.grid import GridSpec
+from toolbox.grid import GridSpec, MapLayers
 from toolbox.planning.paths import mask_near_path
 
 # Overlaps thinner than this fraction of a cell are shared edges, not coverage.
 EDGE_TOLERANCE = 1e-9
-
-
-@dataclass(frozen=True)
-class MapLayers:
-    """Cost, hazard and unknown layers over one grid. Hazard cells cost +inf and count as known;
-    unknown cells cost NaN (their cost is the unknown policy's to give)."""
-
-    spec: GridSpec
-    cost: np.ndarray
-    hazard: np.ndarray
-    unknown: np.ndarray
-
-    def __post_init__(self) -> None:
-        cost = np.asarray(self.cost, dtype=np.float64)
-        hazard = np.asarray(self.hazard, dtype=bool)
-        unknown = np.asarray(self.unknown, dtype=bool) & ~hazard
-        for name, layer in (("cost", cost), ("hazard", hazard), ("unknown", unknown)):
-            if layer.shape != self.spec.shape:
-                raise ValueError(f"{name} layer is {layer.shape}, the grid is {self.spec.shape}")
-        known = ~unknown & ~hazard
-        if np.isnan(cost[known]).any():
-            raise ValueError("known cells hold NaN cost; mark them unknown")
-        if (cost[known] < 0).any():
-            raise ValueError("costs must be >= 0")
-        object.__setattr__(self, "cost", np.where(hazard, np.inf, np.where(unknown, np.nan, cost)))
-        object.__setattr__(self, "hazard", hazard)
-        object.__setattr__(self, "unknown", unknown)
-
-    @classmethod
-    def from_cost(cls, spec: GridSpec, cost: np.ndarray, hazard: np.ndarray | None = None) -> "MapLayers":
-        """Layers from a cost grid whose NaN cells are unknown."""
-        cost = np.asarray(cost, dtype=np.float64)
-        hazard = np.zeros(cost.shape, dtype=bool) if hazard is None else hazard
-        return cls(spec, cost, hazard, np.isnan(cost))
 
 
 @dataclass(frozen=True)
