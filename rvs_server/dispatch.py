@@ -71,8 +71,8 @@ class CommandSpec:
     positionals: tuple[str, ...] = ()
     raw: bool = False  # the handler gets the tokens unparsed (check, help)
     devices: tuple[str, ...] = ()  # what `continue` checks before resuming
-    validate: Callable[[Any, Any], None] | None = None  # (server, cfg) -> None, raises RvsError
-    limits: Callable[[Any], dict[str, str]] | None = None  # (server) -> what help adds from devices
+    validate: Callable[["Host", Any], None] | None = None  # (server, cfg) -> None, raises RvsError
+    limits: Callable[["Host"], dict[str, str]] | None = None  # (server) -> what help adds from devices
     resumable: bool = True
     open_without_auth: bool = False
     module: "Module | None" = None

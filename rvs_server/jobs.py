@@ -23,6 +23,9 @@ from typing import TYPE_CHECKING, Any, Callable
 from .files import write_json_atomic, write_text_atomic
 
 if TYPE_CHECKING:
+    from drivers.sim.clock import SimClock
+
+    from .devices import Devices
     from .host import Host
 
 
@@ -245,11 +248,11 @@ class JobContext:
         return self.server.state_of(self.module) if self.module else None
 
     @property
-    def devices(self) -> Any:
+    def devices(self) -> "Devices":
         return self.server.devices
 
     @property
-    def clock(self) -> Any:
+    def clock(self) -> "SimClock":
         return self.server.clock
 
     @property
