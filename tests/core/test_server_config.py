@@ -53,10 +53,11 @@ def make_server(tmp_path):
     made: list[Server] = []
 
     def make() -> Server:
-        config_dir = tmp_path / "configs"
+        root = tmp_path / f"server{len(made)}" if made else tmp_path
+        config_dir = root / "configs"
         shutil.copytree(REPO / "configs", config_dir)
-        shutil.copytree(REPO / "workflows", tmp_path / "workflows")
-        server = Server(config_dir, {"data_dir": str(tmp_path / "data")})
+        shutil.copytree(REPO / "workflows", root / "workflows")
+        server = Server(config_dir, {"data_dir": str(root / "data")})
         made.append(server)
         return server
 
@@ -113,3 +114,23 @@ def test_the_log_directory_keeps_a_bounded_number_of_files(tmp_path):
     assert {p.name for p in files} == {"rvs-20260201-000000-2.log", "rvs-20260201-000000-2.log.1",
                                        "rvs-20260201-000000-2.log.2"}
     assert "line 0499" in (logs / "rvs-20260201-000000-2.log").read_text()
+
+
+def test_the_server_is_what_the_modules_are_told_it_is(make_server):
+    """Every member of the Host protocol (rvs_server/host.py) exists on a real Server with the kind the
+    protocol gives, and module state is made once per server, on first use."""
+    import inspect
+
+    from rvs_server.host import Host
+
+    server, other = make_server(), make_server()
+    hints = Host.__annotations__
+    methods = [name for name, value in vars(Host).items() if inspect.isfunction(value) and not name.startswith("_")]
+    missing = [name for name in [*hints, *methods] if not hasattr(server, name)]
+    assert not missing, f"Server lacks {missing}"
+    assert all(callable(getattr(server, name)) for name in methods)
+    assert server.settings_of("mapping") is server.module_configs["mapping"].settings
+    routes = server.state_of("routes")
+    assert server.state_of("routes") is routes and other.state_of("routes") is not routes
+    with pytest.raises(KeyError, match="keeps no state"):
+        server.state_of("system")
