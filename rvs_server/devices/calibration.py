@@ -75,6 +75,5 @@ def build_calibration(config: CalibrationConfig, testbed: Any = None) -> Calibra
         mounts = {name: SensorMount.from_offsets(ptu, m.position_m, m.rotation_deg)
                   for name, m in config.mounts.items()}
         length, width = config.rover_length_m, config.rover_width_m
-    t = config.tof_intrinsics
-    return Calibration(mounts=mounts, tof_intrinsics=Intrinsics(t.width, t.height, t.fx, t.fy, t.cx, t.cy, t.k1, t.k2),
+    return Calibration(mounts=mounts, tof_intrinsics=Intrinsics(**config.tof_intrinsics.model_dump()),
                        rover_length_m=length, rover_width_m=width, source=config.source)
