@@ -21,6 +21,7 @@ from rvs_server.files import atomic_file
 from rvs_server.jobs import JobContext
 from rvs_server.mapping.steps import operations
 from rvs_server.protocol import BadRequest
+from rvs_server.products.canvas import side_by_side
 from rvs_server.products.ply import write_ply
 from rvs_server.products.rasters import write_geotiff, write_png
 from toolbox.colour import categorical, colourise, upscale, with_colour_bar, with_key, with_title
@@ -237,18 +238,6 @@ def truth_obstacle_picture(ctx: JobContext, spec: GridSpec, step: float) -> np.n
     rgb = categorical(obstacles[:spec.rows, :spec.cols].astype(np.uint8), {0: (70, 160, 70), 1: (220, 60, 50)})
     return with_key(_north_up(rgb), [("clear", (70, 160, 70)), (f"rock > {step} m", (220, 60, 50))],
                     "truth: obstacles")
-
-
-def side_by_side(panels: list[np.ndarray], gap: int = 8) -> np.ndarray:
-    """Panels left to right, each enlarged to a readable size, bottoms padded to one height."""
-    height = max(p.shape[0] for p in panels)
-    padded = [np.concatenate([p, np.full((height - p.shape[0], p.shape[1], 3), 20, np.uint8)], axis=0)
-              for p in panels]
-    spacer = np.full((height, gap, 3), 20, np.uint8)
-    out = [padded[0]]
-    for panel in padded[1:]:
-        out += [spacer, panel]
-    return np.concatenate(out, axis=1)
 
 
 def write_truth_grids(ctx: JobContext, product: Any, spec: GridSpec, acquired: dict | None,
