@@ -1,5 +1,11 @@
-"""DEMs, ortho-images and hazard maps: dem-full[-tof], dem-update[-tof], and the workflow steps
-(`steps.operations`) that navigate reuses."""
-from rvs_server.mapping.commands import module
+"""DEMs, ortho-images and hazard maps: dem-full[-tof], dem-update[-tof].
 
-__all__ = ["module"]
+Other capabilities use mapping through the names below and nothing else (tests/core/
+test_import_directions.py holds them to it): navigate runs the mapping workflows and writes their
+maps; routes points the PTU and reads the stereo intrinsics.
+"""
+from rvs_server.mapping.commands import MappingSettings, WorkflowArgs, check_workflow, module, write_maps
+from rvs_server.mapping.steps import leave_camera_as_acquired, operations, point_ptu, stereo_intrinsics
+
+__all__ = ["module", "MappingSettings", "WorkflowArgs", "check_workflow", "write_maps", "operations",
+           "leave_camera_as_acquired", "point_ptu", "stereo_intrinsics"]
