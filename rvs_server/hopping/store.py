@@ -72,7 +72,7 @@ def write_hop(product: Any, record: Any, number: int) -> None:
                     "heading_deg": math.degrees(record.commanded_heading)},
         "frames": int(len(record.frames)), "last_frame_s": float(record.timestamps[-1]),
         "exposure_ms": None if record.exposure_s is None else record.exposure_s * 1e3,
-        "camera": record.camera.model_dump(mode="json"), "camera_to_body": record.camera_to_body.tolist(),
+        "camera": record.camera.as_dict(), "camera_to_body": record.camera_to_body.tolist(),
         "body_radius_m": record.config.body_radius_m,
         "frames_note": "camera frame as OpenCV; body x forward, y left, z up, origin at the centre of mass",
     }, "the hop command and the hopper's calibration: camera intrinsics, camera-to-body, body radius")
