@@ -3,7 +3,11 @@
 Each device is a thin wrapper around a driver from `drivers/`: it opens the real backend or the
 emulator the config names, keeps its health (`ok`, `fault`, `off`) and last error for `status`,
 and gives jobs the driver once the device is healthy. When any device runs on the simulator, one
-SimulatedTestbed (world, rover, truth) is shared by all of them.
+SimulatedTestbed (world, rover, truth) is shared by all of them. The rover (`devices.rover`: pose
+estimate, drive, forward camera) is built on the same test bed.
+
+The simulator's config types the capabilities' settings name (DriveError, Sun, ForwardCameraConfig)
+are re-exported here, so no capability imports drivers.sim.
 """
 from __future__ import annotations
 
@@ -11,7 +15,7 @@ import math
 from pathlib import Path
 
 from drivers.sim.clock import SimClock
-from drivers.sim.config import WorldConfig
+from drivers.sim.config import DriveError, Sun, WorldConfig
 from drivers.sim.faults import FAULT_DEVICES  # noqa: F401  the devices a fault can be injected into (sim-fault)
 from drivers.sim.testbed import SimulatedTestbed
 
@@ -19,6 +23,7 @@ from ..config import Settings
 from .base import Device, Health
 from .cameras import CamerasDeviceConfig, StereoDevice
 from .ptu import PtuDevice, PtuDeviceConfig
+from .rover import ForwardCameraConfig, RoverDevice
 from .tof import TofDevice, TofDeviceConfig
 from .truth import GroundTruth
 
@@ -47,6 +52,7 @@ class Devices:
             "tof": TofDevice(config.tof, clock, self.testbed),
             "cameras": StereoDevice(config.cameras, clock, self.testbed),
         }
+        self.rover = RoverDevice(self.testbed, lambda: self.simulated)  # not an item: see devices/rover.py
 
     def __getitem__(self, name: str) -> Device:
         return self.items[name]
@@ -93,4 +99,5 @@ class Devices:
         return items
 
 
-__all__ = ["Devices", "DevicesConfig", "Device", "Health", "PtuDevice", "StereoDevice", "TofDevice"]
+__all__ = ["Devices", "DevicesConfig", "Device", "DriveError", "ForwardCameraConfig", "Health", "PtuDevice",
+           "RoverDevice", "StereoDevice", "Sun", "TofDevice"]

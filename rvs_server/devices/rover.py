@@ -1,0 +1,306 @@
+"""The rover: where the server believes it stands, who drives it, and its forward camera.
+
+The pose estimate starts at the simulated rover's start pose with simulated devices (the initial
+pose is given), else at 0,0; navigation corrects it from its maps, a simulated drive dead-reckons
+it, and the GNC's `pose` command replaces it. Two drives sit behind one interface (`Drive`):
+
+    simulated  the simulated rover turns, then drives straight, with its drive error
+               (drivers/sim/motion.py); the estimate is dead-reckoned from what was commanded
+    gnc        the waypoints or the action go out as a `navigate` event (the GNC interface is written
+               here only), then the job waits for the GNC's `pose X,Y,HEADING`
+
+`RoverDevice.drive` is the one place that picks between them from a command family's setting
+(auto | simulated | gnc). The simulator's truth (the true pose, the world's extent, the forward
+camera's view) is reached through this device, never by a command module.
+
+The rover is no entry of `Devices.items`: it has no driver to open or reset, and as one it would
+add a line to every `status` and `reset` reply.
+"""
+from __future__ import annotations
+
+import math
+from abc import ABC, abstractmethod
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Callable, ClassVar, Iterator, Literal, Sequence
+
+import numpy as np
+
+from drivers.sim.forward_camera import ForwardCamera, ForwardCameraConfig
+from drivers.sim.motion import dead_reckon, turn_and_distance
+
+from ..protocol import BadRequest, DeviceError, Timeout
+from toolbox.geometry import RoverPose
+
+if TYPE_CHECKING:
+    from drivers.sim.testbed import SimulatedTestbed
+    from rvs_server.jobs import JobContext
+
+DriveMode = Literal["auto", "simulated", "gnc"]
+POSE_POLL_S = 0.5
+NO_FORWARD_CAMERA = "the forward camera is the simulated rover's body-fixed camera and the devices are real"
+
+__all__ = ["Drive", "DriveMode", "ForwardCamera", "ForwardCameraConfig", "GncDrive", "Moved", "Pace", "RoverDevice",
+           "SimulatedDrive", "WorldEdge", "dead_reckon"]
+
+
+@dataclass(frozen=True)
+class Pace:
+    """What a command family's settings say about driving: the simulated rover's speeds, the height
+    above which a rock counts as a contact, and how long the GNC's pose is waited for."""
+
+    turn_rate_deg_s: float
+    speed_m_s: float
+    step_height_m: float
+    pose_timeout_s: float
+
+
+@dataclass(frozen=True)
+class Moved:
+    """One move done: the pose estimate after it and what the simulator saw on the way."""
+
+    estimate: RoverPose
+    commanded: tuple[float, float] | None   # (turn rad, distance m) dead-reckoned; None: the GNC's pose
+    legs: int = 1                           # waypoints done by this move
+    contacts: int = 0                       # simulated: samples whose footprint touched a true obstacle
+    true_path: list[list[float]] = field(default_factory=list)  # simulated: true x, y, heading after the start
+
+
+class WorldEdge(BadRequest):
+    """The simulated rover would leave the simulated world (a real rover's ground does not end)."""
+
+
+def action_motion(kind: str, value: float) -> tuple[float, float]:
+    """(turn rad, distance m) of an action: turn by value, forward or backward value metres."""
+    turn = value if kind == "turn" else 0.0
+    distance = 0.0 if kind == "turn" else (value if kind == "forward" else -value)
+    return turn, distance
+
+
+class Drive(ABC):
+    """How the rover carries out motion. Both take one action (route teaching and repeating) or a
+    list of waypoints (navigate); either way the rover device's pose estimate follows."""
+
+    simulated: ClassVar[bool]
+
+    def __init__(self, rover: "RoverDevice"):
+        self.rover = rover
+
+    @abstractmethod
+    def act(self, job: "JobContext", kind: str, value: float, pace: Pace) -> Moved:
+        """One action: kind turn (value radians, counter-clockwise), forward or backward (metres)."""
+
+    @abstractmethod
+    def waypoints(self, job: "JobContext", waypoints: Sequence[Sequence[float]], start: RoverPose, pace: Pace,
+                  goal: tuple[float, float], cycle: int,
+                  announce: Callable[[Sequence[float] | None], None]) -> Iterator[Moved]:
+        """Drive to the waypoints from start, one Moved per part done; between two, the caller may
+        checkpoint. announce(target) comes before each leg a simulated rover drives, announce(None)
+        once the GNC has them all."""
+
+    def true_pose(self) -> list[float] | None:
+        """The simulated rover's true x, y, heading for truth records; None when no simulator drives."""
+        return None
+
+    def resume_at(self, x: float, y: float, heading: float) -> None:
+        """A resumed job's rover stands where it stopped (a real one stays there): nothing to do."""
+
+
+class SimulatedDrive(Drive):
+    """The simulated rover turns, then drives straight, with its drive error; the estimate is
+    dead-reckoned from what was commanded."""
+
+    simulated = True
+
+    def act(self, job: "JobContext", kind: str, value: float, pace: Pace) -> Moved:
+        turn, distance = action_motion(kind, value)
+        return self.move(job, turn, distance, pace)
+
+    def waypoints(self, job: "JobContext", waypoints: Sequence[Sequence[float]], start: RoverPose, pace: Pace,
+                  goal: tuple[float, float], cycle: int,
+                  announce: Callable[[Sequence[float] | None], None]) -> Iterator[Moved]:
+        for target in list(waypoints):
+            job.safe_point()
+            turn, distance = turn_and_distance((start.x, start.y, start.heading), target)
+            announce(target)
+            moved = self.move(job, turn, distance, pace, start=start, incline=True)
+            yield moved
+            start = moved.estimate
+
+    def move(self, job: "JobContext", turn: float, distance: float, pace: Pace, start: RoverPose | None = None,
+             incline: bool = False) -> Moved:
+        """Turn, then drive (negative: backward), in simulated time. The estimate is dead-reckoned
+        from start (default: the estimate once the rover stopped); incline: roll and pitch from the
+        inclinometer, else start's."""
+        testbed = self.rover.testbed
+        job.sleep(abs(math.degrees(turn)) / pace.turn_rate_deg_s + abs(distance) / pace.speed_m_s)
+        try:
+            motion = testbed.drive(turn, distance, pace.step_height_m)
+        except ValueError as exc:   # the simulated world ends (a real rover's ground does not)
+            raise WorldEdge(f"the simulated rover would leave the simulated world: {exc}") from None
+        if start is None:
+            start = self.rover.pose_estimate
+        x, y, heading = dead_reckon((start.x, start.y, start.heading), turn, distance)
+        roll, pitch = testbed.inclination() if incline else (start.roll, start.pitch)
+        estimate = RoverPose(x, y, start.z, heading, roll, pitch)
+        self.rover.pose_estimate = estimate
+        return Moved(estimate, (turn, distance), 1, motion.contacts, motion.poses[1:].tolist())
+
+    def true_pose(self) -> list[float] | None:
+        return self.rover.true_pose()
+
+    def resume_at(self, x: float, y: float, heading: float) -> None:
+        """A restarted server's simulated world starts with the rover at its start: put it back."""
+        rover = self.rover.testbed.rover
+        if not np.allclose(rover.pose, (x, y, heading)):
+            rover.place(x, y, heading)
+
+
+class GncDrive(Drive):
+    """The GNC drives: what to do goes out as a `navigate` event, and the job waits (in simulated
+    time; `break` ends it) for the GNC's `pose`, the new estimate."""
+
+    simulated = False
+
+    def act(self, job: "JobContext", kind: str, value: float, pace: Pace) -> Moved:
+        reports = self.rover.reports
+        shown = math.degrees(value) if kind == "turn" else value
+        job.publish("navigate", {"job": job.job.id, "action": kind, "value": f"{shown:.4f}",
+                                 "unit": "deg" if kind == "turn" else "m"})
+        self.rover.wait_for_pose(job, reports, pace.pose_timeout_s, f"the route action {kind} {shown:g}")
+        return Moved(self.rover.pose_estimate, None)
+
+    def waypoints(self, job: "JobContext", waypoints: Sequence[Sequence[float]], start: RoverPose, pace: Pace,
+                  goal: tuple[float, float], cycle: int,
+                  announce: Callable[[Sequence[float] | None], None]) -> Iterator[Moved]:
+        reports = self.rover.reports
+        job.publish("navigate", {"job": job.job.id, "cycle": cycle,
+                                 "waypoints": " ".join(f"{x:.3f},{y:.3f}" for x, y in waypoints),
+                                 "goal": f"{goal[0]:.3f},{goal[1]:.3f}"})
+        announce(None)
+        self.rover.wait_for_pose(job, reports, pace.pose_timeout_s, f"navigate handing out cycle {cycle}'s waypoints")
+        yield Moved(self.rover.pose_estimate, None, legs=len(waypoints))
+
+
+@dataclass
+class _Pose:
+    """The estimate and the count of the GNC's reports; outlives a reinit (see take_over)."""
+
+    estimate: RoverPose | None = None   # None: not asked for yet
+    reports: int = 0                    # pose commands received: a GNC drive waits for the next one
+
+
+class RoverDevice:
+    """The rover as the commands see it: its pose estimate and the GNC's reports of it, the drive,
+    the simulator's truth about it, and (simulated only) its forward camera."""
+
+    name = "rover"
+
+    def __init__(self, testbed: "SimulatedTestbed", simulated: Callable[[], bool]):
+        self.testbed = testbed
+        self._simulated = simulated
+        self._pose = _Pose()
+        self._forward: ForwardCamera | None = None
+
+    @property
+    def simulated(self) -> bool:
+        return self._simulated()
+
+    def take_over(self, previous: "RoverDevice") -> None:
+        """reinit builds the devices anew, and the rover has not moved: share the previous device's
+        estimate and reports (a `pose` sent meanwhile lands in both), and keep the forward camera
+        (its noise stream continues on the same world)."""
+        self._pose, self._forward = previous._pose, previous._forward
+
+    # ---------------------------------------------------------------------------------- the pose
+    @property
+    def pose_estimate(self) -> RoverPose:
+        """Where the server believes the rover stands."""
+        if self._pose.estimate is None:
+            if self.simulated:
+                self._pose.estimate = RoverPose.from_matrix(self.testbed.rover.body_to_world)
+            else:
+                self._pose.estimate = RoverPose(0.0, 0.0)
+        return self._pose.estimate
+
+    @pose_estimate.setter
+    def pose_estimate(self, pose: RoverPose) -> None:
+        self._pose.estimate = pose
+
+    @property
+    def reports(self) -> int:
+        """How many poses the GNC has reported."""
+        return self._pose.reports
+
+    def report_pose(self, pose: RoverPose) -> None:
+        """The GNC says where the rover stands: the new estimate, and the end of a GNC drive's wait."""
+        self._pose.estimate = pose
+        self._pose.reports += 1
+
+    def wait_for_pose(self, job: "JobContext", reports: int, timeout_s: float, after: str) -> None:
+        """Wait (in simulated time; `break` ends it) until the GNC reports a pose after the count of
+        reports was `reports`; Timeout after timeout_s, naming what it waited `after`."""
+        waited = 0.0
+        while self.reports == reports:
+            if waited >= timeout_s:
+                raise Timeout(f"no pose from the GNC within {timeout_s:.0f} s of {after}")
+            job.sleep(POSE_POLL_S)
+            waited += POSE_POLL_S
+
+    # ---------------------------------------------------------------------------------- driving
+    def drive(self, mode: DriveMode, option: str) -> Drive:
+        """The drive a setting (`option`, e.g. navigation.drive) picks: simulated or gnc, or auto:
+        simulated when the devices are. A simulated drive with real devices is refused."""
+        simulated = self.simulated
+        if mode == "simulated" and not simulated:
+            raise BadRequest(f"{option} is simulated but the devices are real: set {option.rpartition('.')[2]} "
+                             "= \"gnc\"")
+        if mode == "simulated" or (mode == "auto" and simulated):
+            return SimulatedDrive(self)
+        return GncDrive(self)
+
+    # ---------------------------------------------------------------------------------- the truth
+    def wait_for_world(self) -> None:
+        """Simulated: wait for the world being built, before the rover drives or looks on it."""
+        if self.simulated:
+            self.testbed.wait_for_build()
+
+    def true_pose(self) -> list[float] | None:
+        """The simulated rover's true x, y, heading (radians); None with real devices."""
+        return list(self.testbed.rover.pose) if self.simulated else None
+
+    def true_body_m(self) -> tuple[float, float]:
+        """The simulated rover's body length and width, metres, as its footprint on the truth."""
+        config = self.testbed.rover.config
+        return config.body_length_m, config.body_width_m
+
+    def truly_touches(self, x: float, y: float, heading: float, step: float) -> bool:
+        """Whether the simulated rover's footprint at this pose covers a true obstacle taller than
+        step (the rover is put back where it stands)."""
+        rover = self.testbed.rover
+        saved = rover.pose
+        try:
+            rover.place(x, y, heading)
+            return rover.collides(step)
+        finally:
+            rover.place(*saved)
+
+    def world_extent(self) -> tuple[float, float, float, float] | None:
+        """(x_min, x_max, y_min, y_max) of the simulated world's ground; None with real devices, or
+        before a world file is loaded."""
+        return self.testbed.extent() if self.simulated else None
+
+    # ---------------------------------------------------------------------------------- the camera
+    @property
+    def has_forward_camera(self) -> bool:
+        """The test bed has no forward camera yet: only the simulated rover has one."""
+        return self.simulated
+
+    def forward_camera(self, config: ForwardCameraConfig) -> ForwardCamera:
+        """The simulated forward camera, one per server and rover (its noise stream continues)."""
+        if not self.has_forward_camera:
+            raise DeviceError(NO_FORWARD_CAMERA)
+        rover = self.testbed.rover
+        camera = self._forward
+        if camera is None or camera.rover is not rover or camera.config != config:
+            camera = self._forward = ForwardCamera(rover, config)
+        return camera
