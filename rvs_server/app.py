@@ -35,7 +35,6 @@ from .dispatch import CommandSpec, Dispatcher, Module, Registry, Session
 from .files import remove_stale_temporaries
 from .jobs import JobCounter, RecoveryStore
 from rvs_server.products.manifests import Products
-from toolbox.geometry import RoverPose
 from .protocol import BadRequest
 from .transports.tcp import claim_tcp_port, start_tcp
 from .transports.zmq import ZmqTransport
@@ -188,8 +187,6 @@ class Server:
         self.dispatcher = Dispatcher(self)
         self.devices = Devices(self.devices_config, self.clock, self.world_config, self.world_file)
         self.zmq: ZmqTransport | None = None
-        self._pose_estimate: RoverPose | None = None
-        self.pose_reports = 0  # pose commands received: navigate waits for the next one (real rover)
         self.started = time.monotonic()
         self.log_handlers: list[logging.Handler] = []
         self.log_path = self._start_log()
@@ -239,21 +236,6 @@ class Server:
         testbed = self.devices.testbed if self.devices.simulated else None
         return build_calibration(self.calibration_config, testbed)
 
-    @property
-    def pose_estimate(self) -> RoverPose:
-        """Where the server believes the rover stands. With simulated devices it starts from the
-        simulator's start pose (the initial pose is given); navigation updates it from then on."""
-        if self._pose_estimate is None:
-            if self.devices.simulated:
-                self._pose_estimate = RoverPose.from_matrix(self.devices.testbed.rover.body_to_world)
-            else:
-                self._pose_estimate = RoverPose(0.0, 0.0)
-        return self._pose_estimate
-
-    @pose_estimate.setter
-    def pose_estimate(self, pose: RoverPose) -> None:
-        self._pose_estimate = pose
-
     def command_defaults(self, spec: CommandSpec) -> dict[str, Any]:
         if spec.module is None:
             return {}
@@ -266,6 +248,7 @@ class Server:
         same_world = old.testbed.world_config == self.world_config and old.testbed.world_file == self.world_file
         self.devices = Devices(self.devices_config, self.clock, self.world_config, self.world_file,
                                testbed=old.testbed if same_world else None)
+        self.devices.rover.take_over(old.rover)   # the rover has not moved: its estimate stays
         self.devices.open_all()
 
     # -- logging and events ---------------------------------------------------------------------

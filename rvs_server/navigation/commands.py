@@ -18,12 +18,12 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, PlainValidator, PositiveFloat, ValidationError, model_validator
 from scipy.ndimage import binary_fill_holes
 
-from drivers.sim.config import DriveError
 from rvs_server.config import CommandConfig, Point, Range, SafeName, Settings, TypeLabel
+from rvs_server.devices import DriveError
 from rvs_server.dispatch import Call, Module
 from rvs_server.files import atomic_file
 from rvs_server.jobs import JobContext
-from rvs_server.protocol import BadRequest, Timeout, WrongMode
+from rvs_server.protocol import BadRequest, WrongMode
 from rvs_server.products.rasters import read_geotiff, write_geotiff, write_png
 from toolbox.colour import colourise, with_colour_bar, with_title
 from toolbox.geometry import RoverPose
@@ -200,7 +200,7 @@ def local_map(server: Host, sensor: str) -> tuple[MapLayers, str, Path, dict[str
     """The latest hazard map of the sensor as planning layers, its name and folder, and its ortho-image."""
     name, folder = latest_map_folder(server, sensor)
     settings: NavigationSettings = server.settings_of("navigation")
-    layers = planning_layers(folder, settings, server.pose_estimate)
+    layers = planning_layers(folder, settings, server.devices.rover.pose_estimate)
     ortho = folder / "ortho.tif"
     extra = {"ortho": read_geotiff(ortho)[0] if ortho.exists() else np.full(layers.spec.shape, np.nan)}
     return layers, name, folder, extra
@@ -305,25 +305,12 @@ def planning_params(settings: NavigationSettings, weight: float | None, sensor: 
                           proximity_cost=settings.proximity_cost)
 
 
-def wait_for_pose(ctx: JobContext, reports: int, timeout_s: float, after: str) -> None:
-    """Wait (in simulated time; `break` ends it) until the GNC sends `pose` after the server's
-    pose_reports count was `reports`; Timeout after timeout_s, naming what it waited `after`."""
-    waited = 0.0
-    while ctx.server.pose_reports == reports:
-        if waited >= timeout_s:
-            raise Timeout(f"no pose from the GNC within {timeout_s:.0f} s of {after}")
-        ctx.sleep(0.5)
-        waited += 0.5
-
-
 def operating_box(server: Host) -> tuple[float, float, float, float] | None:
     """navigation.toml operating_area as (x_min, x_max, y_min, y_max), or None where there is no bound."""
     area = server.settings_of("navigation").operating_area
     if isinstance(area, OperatingArea):
         return area.box
-    if area == "world" and server.devices.simulated:
-        return server.devices.testbed.extent()
-    return None
+    return server.devices.rover.world_extent() if area == "world" else None
 
 
 def within_area(layers: MapLayers, box: tuple[float, float, float, float] | None) -> MapLayers:
@@ -344,7 +331,7 @@ def check_reach(server: Host, start: tuple[float, float] | None, goal: tuple[flo
             raise BadRequest(f"{option} {point[0]:g},{point[1]:g} is outside the operating area: x {box[0]:g}:"
                              f"{box[1]:g}, y {box[2]:g}:{box[3]:g} (navigation.toml operating_area)")
     if start is None:
-        pose = server.pose_estimate
+        pose = server.devices.rover.pose_estimate
         start = (pose.x, pose.y)
     distance = math.dist(start, goal)
     if distance > settings.max_reach_m:
@@ -361,7 +348,7 @@ def plan_path_command(ctx: JobContext, cfg: PlanPathConfig) -> dict[str, Any]:
     """Plan a safe path on the current maps; cost map, path and waypoints as pictures, JSON and CSV."""
     server = ctx.server
     settings: NavigationSettings = ctx.settings
-    pose = server.pose_estimate
+    pose = server.devices.rover.pose_estimate
     start = cfg.from_ or (pose.x, pose.y)
     ctx.progress(10, f"reading the latest {cfg.sensor} map")
     local, source, folder, extra = local_map(server, cfg.sensor)
@@ -448,7 +435,7 @@ def pose(call: Call, cfg: PoseConfig) -> dict[str, Any]:
         raise BadRequest(f"pose: {cfg.pose!r} is not X,Y,HEADING (three numbers)") from None
     if not all(math.isfinite(v) for v in (x, y, heading)):
         raise BadRequest(f"pose: {cfg.pose!r} must be finite numbers")
-    old = call.server.pose_estimate
-    call.server.pose_estimate = RoverPose(x, y, old.z, math.radians(heading), old.roll, old.pitch)
-    call.server.pose_reports += 1
+    rover = call.server.devices.rover
+    old = rover.pose_estimate
+    rover.report_pose(RoverPose(x, y, old.z, math.radians(heading), old.roll, old.pitch))
     return {"x": f"{x:.3f}", "y": f"{y:.3f}", "heading": f"{heading:.2f}"}

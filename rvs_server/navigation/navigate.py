@@ -11,9 +11,10 @@ placed where odometry said. Here each cycle
      re-chose after every look would swing between near-equal ways round);
   4. hands out the part of the path inside the newest map and a margin from its border, at most
      max_drive_m long and short of where the drive error could take the rover's body onto a
-     hazard (toolbox planning_drive_error): in the simulation the rover drives it (turn, then straight, with drive
-     error: drivers/sim/motion.py); with a real rover the waypoints go out as a `navigate` event
-     and the job waits for the GNC's `pose X,Y,HEADING`.
+     hazard (toolbox planning_drive_error): the rover device's drive takes it (rvs_server/devices/rover.py,
+     navigation.toml drive): in the simulation the rover drives it (turn, then straight, with drive
+     error); with a real rover the waypoints go out as a `navigate` event and the job waits for the
+     GNC's `pose X,Y,HEADING`.
 
 The state of the traverse is checkpointed after the mapping of each cycle and after each waypoint,
 so `break` stops within a cycle (at a view, a step or a waypoint) and `continue` carries on there.
@@ -27,13 +28,14 @@ import math
 import shutil
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Literal, NamedTuple
+from typing import TYPE_CHECKING, Any, Literal, NamedTuple, Sequence
 
 import numpy as np
 from pydantic import Field
 from scipy.ndimage import distance_transform_edt
 
 from rvs_server.config import CommandConfig, Point, SafeName
+from rvs_server.devices.rover import Moved, Pace, WorldEdge, dead_reckon
 from rvs_server.files import atomic_file, save_npy_atomic
 from rvs_server.jobs import JobContext
 from rvs_server.mapping.steps import leave_camera_as_acquired, operations
@@ -53,8 +55,8 @@ from rvs_server.workflow import WorkflowError, resolve_params, run_workflow
 from rvs_server.mapping.commands import MappingSettings, NavigateArgs, check_workflow, write_maps
 from rvs_server.navigation.pictures import write_traverse
 from rvs_server.navigation.commands import (NavigationSettings, check_reach, handout_border, hole_mask, look_distance, module,
-                         operating_box, planning_layers, planning_params, under_rover, unlooked_ground, wait_for_pose,
-                         within_area, write_plan)
+                         operating_box, planning_layers, planning_params, under_rover, unlooked_ground, within_area,
+                         write_plan)
 
 if TYPE_CHECKING:
     from rvs_server.host import Host
@@ -147,35 +149,21 @@ class Navigation:
         self.mapping: MappingSettings = ctx.settings_of("mapping")
         self.product = ctx.product(cfg, name=cfg.output)
         self.goal = (float(cfg.to[0]), float(cfg.to[1]))
-        self.simulated = self._drives_simulated()
+        self.rover = ctx.devices.rover
+        self.drive_by = self.rover.drive(self.settings.drive, "navigation.drive")
         resume = ctx.resume or {}
         if "traverse" in resume:
             self.state = Traverse(**resume["traverse"])
-            self.server.pose_estimate = self.state.rover
-            self._simulated_rover_back()
+            self.rover.pose_estimate = self.state.rover
+            if self.state.true_path:   # a restarted simulated world has the rover at its start
+                self.drive_by.resume_at(*self.state.true_path[-1][:3])
         else:
-            pose = self.server.pose_estimate
+            pose = self.rover.pose_estimate
             self.state = Traverse(product=self.product.name, start=[pose.x, pose.y],
                                   pose=[pose.x, pose.y, pose.z, pose.heading, pose.roll, pose.pitch],
                                   odometry=[pose.x, pose.y, pose.heading])
             self._record_position()
         self.start_distance = math.dist(self.state.start, self.goal)
-
-    def _drives_simulated(self) -> bool:
-        mode = self.settings.drive
-        if mode == "simulated" and not self.ctx.devices.simulated:
-            raise BadRequest("navigation.drive is simulated but the devices are real: set drive = \"gnc\"")
-        return mode == "simulated" or (mode == "auto" and self.ctx.devices.simulated)
-
-    def _simulated_rover_back(self) -> None:
-        """A restarted server's simulated world starts with the rover at its start, where a real rover
-        stays where it stopped: put the simulated one back where the traverse's truth last saw it."""
-        if not (self.simulated and self.state.true_path):
-            return
-        rover = self.ctx.devices.testbed.rover
-        x, y, heading = self.state.true_path[-1][:3]
-        if not np.allclose(rover.pose, (x, y, heading)):
-            rover.place(x, y, heading)
 
     # ---------------------------------------------------------------------------------- the loop
     def run(self) -> dict[str, Any]:
@@ -218,7 +206,7 @@ class Navigation:
         except WorkflowError as exc:
             raise BadRequest(f"navigate: {exc}") from None
         before = state.rover
-        self.server.pose_estimate = before
+        self.rover.pose_estimate = before
         working = self.server.recovery.folder(self.ctx.job.id)
         forget_finished_cycles(working, cycle)
         folder = working / f"cycle-{cycle:02d}"
@@ -228,7 +216,7 @@ class Navigation:
         aligned = results["aligned"]
         after = RoverPose.from_matrix(np.asarray(aligned["correction"]) @ before.to_world())
         state.pose = [after.x, after.y, after.z, after.heading, after.roll, after.pitch]
-        self.server.pose_estimate = after
+        self.rover.pose_estimate = after
         part = ProductPart(self.product, f"cycle-{cycle:02d}")
         summary = write_maps(self.ctx, part, results, self.mapping)
         self.ctx.save_truth(part)
@@ -245,8 +233,9 @@ class Navigation:
                                 for k in ("accepted", "reason", "dx", "dy", "dz", "dyaw", "fitness", "rmse",
                                           "constraint")},
                   "map": summary, "pan": list(args.pan), "steps": [p["step"] for p in provenance]}
-        if self.simulated:
-            record["pose_true"] = list(self.ctx.devices.testbed.rover.pose)
+        true = self.drive_by.true_pose()
+        if true is not None:
+            record["pose_true"] = true
         state.cycles.append(record)
         if state.estimated_path:
             state.estimated_path[-1] = [after.x, after.y, after.heading]
@@ -416,56 +405,54 @@ class Navigation:
 
     # ---------------------------------------------------------------------------------- driving
     def drive(self) -> None:
-        if self.simulated:
-            self.drive_simulated()
-        else:
-            self.drive_with_gnc()
+        """Drive the waypoints handed out (the rover device's drive: simulated, or the GNC's, which
+        the job waits for; the wait ends at `break` too), checkpointed after each part."""
+        state, settings = self.state, self.settings
+        pace = Pace(settings.turn_rate_deg_s, settings.drive_speed_m_s, self.mapping.truth_step,
+                    settings.pose_timeout_s)
+        moves = self.drive_by.waypoints(self.ctx, state.to_drive, state.rover, pace, self.goal, state.cycle,
+                                        self._announce_leg)
+        try:
+            for moved in moves:
+                if moved.commanded is None:
+                    self._driven_by_gnc(moved)
+                else:
+                    self._driven(moved)
+        except WorldEdge as exc:
+            self.fail("world_edge", str(exc))
 
-    def drive_simulated(self) -> None:
-        from drivers.sim.motion import dead_reckon, turn_and_distance
+    def _announce_leg(self, target: Sequence[float] | None) -> None:
         state = self.state
-        testbed = self.ctx.devices.testbed
-        while state.to_drive:
-            self.ctx.safe_point()
-            target = state.to_drive[0]
-            rover = state.rover
-            turn, distance = turn_and_distance((rover.x, rover.y, rover.heading), target)
+        if target is None:
+            self.progress(f"cycle {state.cycle}: waiting for the GNC to drive {len(state.to_drive)} waypoints and "
+                          f"send pose X,Y,HEADING")
+        else:
             self.progress(f"cycle {state.cycle}: driving to ({target[0]:.2f}, {target[1]:.2f}), "
                           f"{self.distance_to_goal():.2f} m to go")
-            self.ctx.sleep(abs(math.degrees(turn)) / self.settings.turn_rate_deg_s
-                           + distance / self.settings.drive_speed_m_s)
-            try:
-                motion = testbed.drive(turn, distance, self.mapping.truth_step)
-            except ValueError as exc:  # the simulated world ends (a real rover's ground does not)
-                self.fail("world_edge", f"the simulated rover would leave the simulated world: {exc}")
-            x, y, heading = dead_reckon((rover.x, rover.y, rover.heading), turn, distance)
-            ox, oy, oh = dead_reckon(tuple(state.odometry), turn, distance)
-            roll, pitch = testbed.inclination()
-            state.pose = [x, y, self._ground_height(x, y, rover.z), heading, roll, pitch]
-            state.odometry = [ox, oy, oh]
-            state.contacts += motion.contacts
-            state.moved = [state.moved[0] + abs(distance), state.moved[1] + abs(math.degrees(turn))]
-            state.true_path.extend(motion.poses[1:].tolist())
-            state.to_drive.pop(0)
-            self.server.pose_estimate = state.rover
-            self._record_position(true=False)
-            self.checkpoint()
 
-    def drive_with_gnc(self) -> None:
-        """Hand the waypoints to the GNC and wait for its pose; the wait ends at `break` too."""
+    def _driven(self, moved: Moved) -> None:
+        """A leg the simulated rover drove: the estimate dead-reckoned, standing on the newest DEM."""
         state = self.state
-        reports = self.server.pose_reports
-        waypoints = " ".join(f"{x:.3f},{y:.3f}" for x, y in state.to_drive)
-        self.ctx.publish("navigate", {"job": self.ctx.job.id, "cycle": state.cycle, "waypoints": waypoints,
-                                      "goal": f"{self.goal[0]:.3f},{self.goal[1]:.3f}"})
-        self.progress(f"cycle {state.cycle}: waiting for the GNC to drive {len(state.to_drive)} waypoints and "
-                      f"send pose X,Y,HEADING")
-        wait_for_pose(self.ctx, reports, self.settings.pose_timeout_s,
-                      f"navigate handing out cycle {state.cycle}'s waypoints")
-        pose = self.server.pose_estimate
+        turn, distance = moved.commanded
+        rover, pose = state.rover, moved.estimate
+        ox, oy, oh = dead_reckon(tuple(state.odometry), turn, distance)
+        state.pose = [pose.x, pose.y, self._ground_height(pose.x, pose.y, rover.z), pose.heading, pose.roll,
+                      pose.pitch]
+        state.odometry = [ox, oy, oh]
+        state.contacts += moved.contacts
+        state.moved = [state.moved[0] + abs(distance), state.moved[1] + abs(math.degrees(turn))]
+        state.true_path.extend(moved.true_path)
+        del state.to_drive[:moved.legs]
+        self.rover.pose_estimate = state.rover
+        self._record_position(true=False)
+        self.checkpoint()
+
+    def _driven_by_gnc(self, moved: Moved) -> None:
+        """The GNC drove the waypoints: its pose is the estimate, and odometry starts from it."""
+        state, pose = self.state, moved.estimate
         state.pose = [pose.x, pose.y, pose.z, pose.heading, pose.roll, pose.pitch]
         state.odometry = [pose.x, pose.y, pose.heading]
-        state.to_drive = []
+        del state.to_drive[:moved.legs]
         self._record_position(true=False)
 
     def _ground_height(self, x: float, y: float, fallback: float) -> float:
@@ -481,8 +468,8 @@ class Navigation:
         state = self.state
         state.estimated_path.append([state.pose[0], state.pose[1], state.pose[3]])
         state.odometry_path.append(list(state.odometry))
-        if true and self.simulated and not state.true_path:
-            state.true_path.append(list(self.ctx.devices.testbed.rover.pose))
+        if true and not state.true_path and (pose := self.drive_by.true_pose()) is not None:
+            state.true_path.append(pose)
 
     def distance_to_goal(self) -> float:
         return math.dist(self.state.pose[:2], self.goal)
@@ -515,9 +502,9 @@ class Navigation:
             maps = self.fused_map()
             fused = with_hazards(maps.seen, maps.unconfirmed)
         truth = None
-        if self.simulated:
-            testbed = self.ctx.devices.testbed
-            truth = {"path": state.true_path, "contacts": state.contacts, "pose": list(testbed.rover.pose),
+        pose = self.drive_by.true_pose()
+        if pose is not None:
+            truth = {"path": state.true_path, "contacts": state.contacts, "pose": pose,
                      "step_height_m": self.mapping.truth_step}
         write_traverse(self.ctx, self.product, state, self.goal, outcome, message, fused, truth)
         with atomic_file(self.product.add("path.csv", "the driven path: estimated (map-corrected) and dead reckoning"),

@@ -91,18 +91,17 @@ def map_panel(fused: MapLayers, state: Any, goal, truth: dict | None) -> np.ndar
 
 
 def truth_panel(ctx: JobContext, spec: GridSpec, truth: dict, goal, state: Any) -> np.ndarray | None:
-    testbed = ctx.devices.testbed
-    world = testbed.world
-    if spec.cell < world.grid.cell:
+    world = ctx.devices.truth
+    if world is None or spec.cell < world.cell:
         return None
     obstacles = world.obstacle_mask(truth["step_height_m"], spec.cell, spec.x_range, spec.y_range)
     rgb = categorical(obstacles[:spec.rows, :spec.cols].astype(np.uint8), {0: (70, 160, 70), 1: (220, 60, 50)})
     canvas = Canvas(rgb, spec)
     canvas.line([p[:2] for p in truth["path"]], MAGENTA, 2)
-    rover = testbed.rover
-    length, width = rover.config.body_length_m, rover.config.body_width_m
+    rover = ctx.devices.rover
+    length, width = rover.true_body_m()
     for x, y, heading in truth["path"][::4]:
-        if _touches(world, rover, x, y, heading, truth["step_height_m"]):
+        if rover.truly_touches(x, y, heading, truth["step_height_m"]):
             corners = _corners(x, y, heading, length, width)
             cv2.polylines(canvas.image, [canvas.pixels(corners)], True, WHITE, 1)
     canvas.ends(state.start, goal)
@@ -117,12 +116,3 @@ def _corners(x: float, y: float, heading: float, length: float, width: float) ->
     c, s = math.cos(heading), math.sin(heading)
     return np.array([x, y]) + local @ np.array([[c, -s], [s, c]]).T
 
-
-def _touches(world: Any, rover: Any, x: float, y: float, heading: float, step: float) -> bool:
-    """Whether the footprint at this pose covers a true obstacle (without moving the rover)."""
-    saved = rover.pose
-    try:
-        rover.place(x, y, heading)
-        return rover.collides(step)
-    finally:
-        rover.place(*saved)

@@ -24,10 +24,8 @@ import cv2
 import numpy as np
 from pydantic import Field, model_validator
 
-from drivers.sim.config import Sun
-from drivers.sim.forward_camera import ForwardCameraConfig
-
 from rvs_server.config import CommandConfig, SafeName, Settings
+from rvs_server.devices import ForwardCameraConfig, Sun
 from rvs_server.host import Host
 from rvs_server.dispatch import Call, Module
 from rvs_server.jobs import JobContext
@@ -126,7 +124,7 @@ def _check(server: Host, cfg: Any = None) -> None:
 
 
 def _pose_tuple(server: Host) -> tuple[float, float, float]:
-    pose = server.pose_estimate
+    pose = server.devices.rover.pose_estimate
     return (pose.x, pose.y, pose.heading)
 
 
@@ -183,7 +181,7 @@ def drive(ctx: JobContext, cfg: DriveConfig) -> dict[str, Any]:
         state.before = after
         state.true_path.extend(rover.true_path[1:])
         reply.update({"route": route, "triplet": triplet.index})
-    pose = ctx.server.pose_estimate
+    pose = ctx.devices.rover.pose_estimate
     return {**reply, "x": f"{pose.x:.3f}", "y": f"{pose.y:.3f}", "heading": f"{math.degrees(pose.heading):.2f}"}
 
 

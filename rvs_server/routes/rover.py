@@ -1,32 +1,27 @@
 """The rover as the route commands see it: a camera to look with and actions to take.
 
 Camera (routes.toml `camera`):
-    forward  the body-fixed forward camera (drivers/sim/forward_camera.py); the test bed has no such
-             camera yet, so it exists on the simulated rover only
+    forward  the body-fixed forward camera (the rover device's, rvs_server/devices/rover.py); the test
+             bed has no such camera yet, so it exists on the simulated rover only
     left     the left stereo camera through the PTU at pan 0 and `left_tilt_deg`, one triggered grab,
              grey and resized to `image_width`: works on the real test bed and (slowly) on the simulator
-Actions (routes.toml `actions`, as navigation's `drive`):
-    simulated  the simulated rover executes them with its drive error (drivers/sim/motion.py)
+Actions (routes.toml `actions`, as navigation's `drive`; the rover device picks the drive):
+    simulated  the simulated rover executes them with its drive error
     gnc        each action goes out as a `navigate` event (action=forward|backward|turn value=...) and
                the job waits for the GNC's `pose X,Y,HEADING` that says it is done
 """
 from __future__ import annotations
 
-import math
 from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
 
-from drivers.sim.forward_camera import ForwardCamera
-from drivers.sim.motion import dead_reckon
-
+from rvs_server.devices.rover import Pace
 from rvs_server.jobs import JobContext
 from rvs_server.mapping.steps import point_ptu, stereo_intrinsics
-from rvs_server.protocol import BadRequest, DeviceError
-from toolbox.geometry import RoverPose
+from rvs_server.protocol import DeviceError
 from toolbox.routes.match import PlaceMatcher, grey_image
-from rvs_server.navigation.commands import wait_for_pose
 
 if TYPE_CHECKING:
     from rvs_server.host import Host
@@ -37,13 +32,12 @@ FORWARD_CAMERA_MISSING = ("routes: camera \"forward\" is the simulated rover's b
 
 def check_rover(server: Host, settings: Any) -> None:
     """Refuse, before anything moves, a set-up that cannot work."""
-    simulated = server.devices.simulated
-    if settings.camera == "forward" and not simulated:
+    rover = server.devices.rover
+    if settings.camera == "forward" and not rover.has_forward_camera:
         raise DeviceError(FORWARD_CAMERA_MISSING)
     if settings.camera == "left":
         server.devices["cameras"].require_healthy()
-    if settings.actions == "simulated" and not simulated:
-        raise BadRequest("routes.actions is simulated but the devices are real: set actions = \"gnc\"")
+    rover.drive(settings.actions, "routes.actions")   # refuses a simulated drive with real devices
 
 
 class RouteRover:
@@ -51,16 +45,18 @@ class RouteRover:
 
     def __init__(self, ctx: JobContext, settings: Any, matcher: PlaceMatcher | None = None):
         self.ctx, self.settings, self.matcher = ctx, settings, matcher
-        self.server = ctx.server
-        self.simulated_drive = settings.actions == "simulated" or (settings.actions == "auto" and ctx.devices.simulated)
+        self.device = ctx.devices.rover
+        self.drive = self.device.drive(settings.actions, "routes.actions")
+        self.pace = Pace(settings.turn_rate_deg_s, settings.drive_speed_m_s, settings.truth_step_m,
+                         settings.pose_timeout_s)
         self.true_path: list[list[float]] = []
         self.images = 0
-        if ctx.devices.simulated:
-            self.testbed = ctx.devices.testbed
-            self.testbed.wait_for_build()
-            self.true_path.append(list(self.testbed.rover.pose))
+        self.device.wait_for_world()
+        true = self.device.true_pose()
+        if true is not None:
+            self.true_path.append(true)
         if settings.camera == "forward":
-            self._forward = forward_camera(ctx.server, settings)
+            self._forward = self.device.forward_camera(settings.forward_camera)
             self.focal_px = float(self._forward.camera.fx)
         else:
             self._forward = None
@@ -80,41 +76,7 @@ class RouteRover:
     # ---------------------------------------------------------------------------------- acting
     def act(self, kind: str, value: float) -> None:
         self.ctx.safe_point()
-        turn = value if kind == "turn" else 0.0
-        distance = 0.0 if kind == "turn" else (value if kind == "forward" else -value)
-        if self.simulated_drive:
-            self._act_simulated(turn, distance)
-        else:
-            self._act_with_gnc(kind, value)
-
-    def _act_simulated(self, turn: float, distance: float) -> None:
-        s = self.settings
-        self.ctx.sleep(abs(math.degrees(turn)) / s.turn_rate_deg_s + abs(distance) / s.drive_speed_m_s)
-        try:
-            motion = self.testbed.drive(turn, distance, s.truth_step_m)
-        except ValueError as exc:   # the simulated world ends (a real rover's ground does not)
-            raise BadRequest(f"the simulated rover would leave the simulated world: {exc}") from None
-        self.true_path.extend(motion.poses[1:].tolist())
-        pose = self.server.pose_estimate
-        x, y, heading = dead_reckon((pose.x, pose.y, pose.heading), turn, distance)
-        self.server.pose_estimate = RoverPose(x, y, pose.z, heading, pose.roll, pose.pitch)
-
-    def _act_with_gnc(self, kind: str, value: float) -> None:
-        reports = self.server.pose_reports
-        shown = math.degrees(value) if kind == "turn" else value
-        self.ctx.publish("navigate", {"job": self.ctx.job.id, "action": kind, "value": f"{shown:.4f}",
-                                      "unit": "deg" if kind == "turn" else "m"})
-        wait_for_pose(self.ctx, reports, self.settings.pose_timeout_s, f"the route action {kind} {shown:g}")
-
-
-def forward_camera(server: Host, settings: Any) -> ForwardCamera:
-    """The simulated forward camera, one per server and rover (its noise stream continues)."""
-    testbed = server.devices.testbed
-    camera = getattr(server, "_routes_forward_camera", None)
-    if camera is None or camera.rover is not testbed.rover or camera.config != settings.forward_camera:
-        camera = ForwardCamera(testbed.rover, settings.forward_camera)
-        server._routes_forward_camera = camera
-    return camera
+        self.true_path.extend(self.drive.act(self.ctx, kind, value, self.pace).true_path)
 
 
 def grab_left(ctx: JobContext, settings: Any) -> np.ndarray:
