@@ -94,15 +94,6 @@ def workflow_path(server: Host, command: str) -> Path:
     return base / f"{command}.yaml"
 
 
-class NavigateArgs(WorkflowArgs):
-    """$args of navigate's mapping workflows: the view ranges, and the map to localise against."""
-
-    reference: str = ""
-    max_translation_m: float = Field(1.0, gt=0)
-    max_rotation_deg: float = Field(10.0, gt=0, le=90)
-    step_limit: float = Field(0.10, gt=0)
-
-
 def check_workflow(server: Host, command: str, args_model: type[CommandConfig] = WorkflowArgs) -> Any:
     """Load and check the command's workflow: a broken file is refused before anything moves."""
     try:

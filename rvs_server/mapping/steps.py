@@ -79,11 +79,7 @@ def sensor_fov_deg(job: JobContext, sensor: str) -> tuple[float, float]:
 def stereo_intrinsics(job: JobContext) -> tuple[Intrinsics, Intrinsics]:
     pair = job.devices.cameras.require()
     mode = job.devices.cameras.config.resolution
-    out = []
-    for role in ("left", "right"):
-        k = pair.camera(role).intrinsics(mode)
-        out.append(Intrinsics(k.width, k.height, k.fx, k.fy, k.cx, k.cy, k.k1, k.k2))
-    return out[0], out[1]
+    return pair.camera("left").intrinsics(mode), pair.camera("right").intrinsics(mode)
 
 
 def point_ptu(job: JobContext, pan: float, tilt: float) -> tuple[float, float]:

@@ -38,7 +38,6 @@ from rvs_server.config import CommandConfig, Point, SafeName
 from rvs_server.devices.rover import Moved, Pace, WorldEdge, dead_reckon
 from rvs_server.files import atomic_file, save_npy_atomic
 from rvs_server.jobs import JobContext
-from rvs_server.mapping.steps import leave_camera_as_acquired, operations
 from rvs_server.products.manifests import ProductPart
 from rvs_server.protocol import BadRequest
 from rvs_server.products.rasters import read_geotiff
@@ -52,7 +51,8 @@ from toolbox.planning import (DrivablePrefix, MapLayers, PlanningParams, PlanRes
 from toolbox.planning.drive_error import cut_for_drive_error
 from toolbox.planning.paths import path_length
 from rvs_server.workflow import WorkflowError, resolve_params, run_workflow
-from rvs_server.mapping.commands import MappingSettings, NavigateArgs, check_workflow, write_maps
+from rvs_server.mapping import (MappingSettings, WorkflowArgs, check_workflow, leave_camera_as_acquired, operations,
+                                write_maps)
 from rvs_server.navigation.pictures import write_traverse
 from rvs_server.navigation.commands import (NavigationSettings, check_reach, handout_border, hole_mask, look_distance, module,
                          operating_box, planning_layers, planning_params, under_rover, unlooked_ground, within_area,
@@ -100,6 +100,15 @@ class Traverse:
     @property
     def rover(self) -> RoverPose:
         return RoverPose(*self.pose)
+
+
+class NavigateArgs(WorkflowArgs):
+    """$args of navigate's mapping workflows: the view ranges, and the map to localise against."""
+
+    reference: str = ""
+    max_translation_m: float = Field(1.0, gt=0)
+    max_rotation_deg: float = Field(10.0, gt=0, le=90)
+    step_limit: float = Field(0.10, gt=0)
 
 
 def _validate(server: Host, cfg: NavigateConfig) -> None:

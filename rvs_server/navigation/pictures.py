@@ -20,6 +20,7 @@ from toolbox.colour import categorical, colourise, with_key, with_title
 from toolbox.grid import GridSpec
 from toolbox.planning import MapLayers
 from rvs_server.products.canvas import Canvas as GridCanvas
+from rvs_server.products.canvas import side_by_side
 
 if TYPE_CHECKING:
     from rvs_server.jobs import JobContext
@@ -47,9 +48,7 @@ def write_traverse(ctx: JobContext, product: Any, state: Any, goal: tuple[float,
         obstacles = truth_panel(ctx, fused.spec, truth, goal, state)
         if obstacles is not None:
             panels.append(obstacles)
-    height = max(p.shape[0] for p in panels)
-    panels = [np.concatenate([p, np.full((height - p.shape[0], p.shape[1], 3), 20, np.uint8)]) for p in panels]
-    picture = np.concatenate([x for p in panels for x in (p, np.full((height, 8, 3), 20, np.uint8))][:-1], axis=1)
+    picture = side_by_side(panels)
     title = f"{product.name}: {outcome}" + (f" ({message})" if message else "")
     write_png(product.add("overview.png", "the whole traverse: fused map with the estimated, dead-reckoning "
                           "and (simulated) true paths; true obstacles beside it"), with_title(picture, title[:160]))

@@ -19,7 +19,7 @@ import numpy as np
 
 from rvs_server.devices.rover import Pace
 from rvs_server.jobs import JobContext
-from rvs_server.mapping.steps import point_ptu, stereo_intrinsics
+from rvs_server.mapping import point_ptu, stereo_intrinsics
 from rvs_server.protocol import DeviceError
 from toolbox.routes.match import PlaceMatcher, grey_image
 
