@@ -1,4 +1,4 @@
-"""Image-based routes: drive, route-record, route-follow, route-connect, route-list, route-go, sun."""
+"""Image-based routes: drive, route-record, route-follow, route-connect, route-list, route-go."""
 from rvs_server.routes.commands import module
 
 __all__ = ["module"]

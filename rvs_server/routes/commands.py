@@ -25,11 +25,12 @@ import numpy as np
 from pydantic import Field, model_validator
 
 from rvs_server.config import CommandConfig, SafeName, Settings
-from rvs_server.devices import ForwardCameraConfig, Sun
+from rvs_server.devices import ForwardCameraConfig
 from rvs_server.host import Host
 from rvs_server.dispatch import Call, Module
 from rvs_server.jobs import JobContext
-from rvs_server.protocol import BadRequest, DeviceError, WrongMode
+from rvs_server.protocol import BadRequest, WrongMode
+from rvs_server.products.canvas import sheet
 from rvs_server.products.rasters import write_png
 from rvs_server.routes.store import Action, RouteStore, RouteStoreConfig, RouteStoreError
 from toolbox.colour import with_title
@@ -249,10 +250,7 @@ def contact_sheet(images: list[np.ndarray], columns: int = 6, width: int = 200) 
         tile = cv2.cvtColor(tile, cv2.COLOR_GRAY2RGB)
         cv2.putText(tile, str(number), (6, 22), cv2.FONT_HERSHEY_SIMPLEX, 0.7, (255, 220, 0), 2, cv2.LINE_AA)
         tiles.append(tile)
-    while len(tiles) % columns:
-        tiles.append(np.zeros_like(tiles[0]))
-    rows = [np.hstack(tiles[i:i + columns]) for i in range(0, len(tiles), columns)]
-    return np.vstack(rows)
+    return sheet(tiles, columns, fill=0)
 
 
 # ------------------------------------------------------------------------------------ route-follow
@@ -488,27 +486,3 @@ def locate(store: RouteStore, run: FollowRun, matcher_name: str) -> tuple[str, i
         if ranked and ranked[0].result.same_place and (best is None or ranked[0].result.similarity > best[0]):
             best = (ranked[0].result.similarity, (summary.name, ranked[0].index))
     return None if best is None else best[1]
-
-
-# ------------------------------------------------------------------------------------ sun
-class SunConfig(CommandConfig):
-    azimuth: float = Field(..., ge=0, lt=360, description="degrees clockwise from north")
-    elevation: float = Field(..., gt=0, le=90, description="degrees above the horizon")
-
-
-def _validate_sun(server: Host, cfg: SunConfig) -> None:
-    if not server.devices.simulated:
-        raise DeviceError("sun: the devices are real; the sun is not ours to move")
-
-
-@module.job("sun", SunConfig, resumable=False, validate=_validate_sun)
-def sun(ctx: JobContext, cfg: SunConfig) -> dict[str, Any]:
-    """Simulated world: move the sun (shadows and brightness change; the ground does not)."""
-    testbed = ctx.devices.testbed
-    testbed.wait_for_build()
-    world = testbed.world
-    old = world.sun
-    world.sun = Sun(azimuth_deg=cfg.azimuth, elevation_deg=cfg.elevation, irradiance=old.irradiance,
-                    ambient=old.ambient)
-    return {"azimuth": cfg.azimuth, "elevation": cfg.elevation,
-            "was": f"{old.azimuth_deg:g},{old.elevation_deg:g}"}

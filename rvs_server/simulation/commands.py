@@ -5,6 +5,9 @@ they are `409 wrong-mode`.
 sits inside the emulator, which then stops answering on its own line (no PTU reply, no SR4000
 frame, no camera frame, no trigger pulse out of the box). The server learns of it only as it would
 of a real fault, so what a job does about it is what it would do on the test bed.
+
+`sun` moves the simulated sun (the image-based route paper's change of light); with real devices it
+is `503 device`, since the sun is not ours to move.
 """
 from __future__ import annotations
 
@@ -13,12 +16,13 @@ from typing import TYPE_CHECKING, Any, Literal
 from pydantic import Field
 
 from rvs_server.config import CommandConfig
-from rvs_server.devices import FAULT_DEVICES
+from rvs_server.devices import FAULT_DEVICES, Sun
 from rvs_server.dispatch import Call, Module
-from rvs_server.protocol import BadRequest, WrongMode
+from rvs_server.protocol import BadRequest, DeviceError, WrongMode
 
 if TYPE_CHECKING:
     from rvs_server.host import Host
+    from rvs_server.jobs import JobContext
 
 module = Module("simulation", summary="the simulated world: injected device faults")
 
@@ -82,3 +86,26 @@ def sim_fault(call: Call, cfg: SimFaultConfig) -> dict[str, Any]:
     state = switch.state()
     return {"device": cfg.device, "kind": state.kind, "after": cfg.after or 0, "state": state.state,
             "answered": state.answered}
+
+
+class SunConfig(CommandConfig):
+    azimuth: float = Field(..., ge=0, lt=360, description="degrees clockwise from north")
+    elevation: float = Field(..., gt=0, le=90, description="degrees above the horizon")
+
+
+def _validate_sun(server: Host, cfg: SunConfig) -> None:
+    if not server.devices.simulated:
+        raise DeviceError("sun: the devices are real; the sun is not ours to move")
+
+
+@module.job("sun", SunConfig, resumable=False, validate=_validate_sun)
+def sun(ctx: JobContext, cfg: SunConfig) -> dict[str, Any]:
+    """Simulated world: move the sun (shadows and brightness change; the ground does not)."""
+    testbed = ctx.devices.testbed
+    testbed.wait_for_build()
+    world = testbed.world
+    old = world.sun
+    world.sun = Sun(azimuth_deg=cfg.azimuth, elevation_deg=cfg.elevation, irradiance=old.irradiance,
+                    ambient=old.ambient)
+    return {"azimuth": cfg.azimuth, "elevation": cfg.elevation,
+            "was": f"{old.azimuth_deg:g},{old.elevation_deg:g}"}
