@@ -23,6 +23,7 @@ from typing import TYPE_CHECKING, Any, Awaitable, Callable, Literal, Mapping, Pr
 from drivers.errors import DeviceFault, DeviceTimeout
 
 from .config import CommandConfig, Settings, bind_tokens, build_config, option_name, type_label
+from .host import ModuleScope
 from .jobs import Job, JobContext, JobInterrupted, RecoverySet
 from .protocol import (Busy, CommandLine, DeviceError, InternalError, Interrupted, RvsError,
                        Sleeping, Timeout, Unauthorized, UnknownCommand, WrongMode)
@@ -179,7 +180,7 @@ class Session:
 
 
 @dataclass
-class Call:
+class Call(ModuleScope):
     """What an immediate or control handler gets besides its options."""
 
     server: "Host"
@@ -187,17 +188,6 @@ class Call:
     request: Request
     sink: ReplySink
     module: str | None = None  # the command's module: its settings and state
-
-    @property
-    def settings(self) -> Any:
-        return self.server.settings_of(self.module) if self.module else None
-
-    def settings_of(self, module: str) -> Any:
-        return self.server.settings_of(module)
-
-    @property
-    def state(self) -> Any:
-        return self.server.state_of(self.module) if self.module else None
 
 
 # ---------------------------------------------------------------------------------------------

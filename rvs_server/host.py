@@ -63,3 +63,25 @@ class Host(Protocol):
     def reopen_devices(self) -> None: ...
 
     def shutdown(self) -> Any: ...
+
+
+class ModuleScope:
+    """What a handler's context (JobContext, Call) gives of its module: its settings and state, and
+    other modules' settings. Needs `server` and `module` (the module's name, None for none)."""
+
+    server: Host
+    module: str | None
+
+    @property
+    def settings(self) -> Any:
+        """The command's module's settings, from configs/<module>.toml."""
+        return self.server.settings_of(self.module) if self.module else None
+
+    def settings_of(self, module: str) -> Any:
+        """Another module's settings (read them; the module that owns them says what they mean)."""
+        return self.server.settings_of(module)
+
+    @property
+    def state(self) -> Any:
+        """The command's module's state on this server (Module's `state` factory)."""
+        return self.server.state_of(self.module) if self.module else None

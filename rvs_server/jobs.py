@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable
 
 from .files import write_json_atomic, write_text_atomic
+from .host import ModuleScope
 
 if TYPE_CHECKING:
     from drivers.sim.clock import SimClock
@@ -215,7 +216,7 @@ class Job:
         self.interrupt.set()
 
 
-class JobContext:
+class JobContext(ModuleScope):
     """What a job handler sees: its settings and state, progress, checkpoints, safe points, devices,
     clock, data directory. Built from named fields (dispatch.Dispatcher.start_job)."""
 
@@ -232,20 +233,6 @@ class JobContext:
         self._on_progress = on_progress
         self.products: list[Any] = []  # folders this run writes; the runner closes unfinished ones
         self.log = logging.getLogger(f"rvs.job.{job.command}")
-
-    @property
-    def settings(self) -> Any:
-        """The command's module's settings, from configs/<module>.toml."""
-        return self.server.settings_of(self.module) if self.module else None
-
-    def settings_of(self, module: str) -> Any:
-        """Another module's settings (read them; the module that owns them says what they mean)."""
-        return self.server.settings_of(module)
-
-    @property
-    def state(self) -> Any:
-        """The command's module's state on this server (Module's `state` factory)."""
-        return self.server.state_of(self.module) if self.module else None
 
     @property
     def devices(self) -> "Devices":
