@@ -249,6 +249,7 @@ class Server:
         self.devices = Devices(self.devices_config, self.clock, self.world_config, self.world_file,
                                testbed=old.testbed if same_world else None)
         self.devices.rover.take_over(old.rover)   # the rover has not moved: its estimate stays
+        self.devices.hopper.take_over(old.hopper)   # on the same world the hopper stays where it landed
         self.devices.open_all()
 
     # -- logging and events ---------------------------------------------------------------------

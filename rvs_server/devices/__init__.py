@@ -4,10 +4,11 @@ Each device is a thin wrapper around a driver from `drivers/`: it opens the real
 emulator the config names, keeps its health (`ok`, `fault`, `off`) and last error for `status`,
 and gives jobs the driver once the device is healthy. When any device runs on the simulator, one
 SimulatedTestbed (world, rover, truth) is shared by all of them. The rover (`devices.rover`: pose
-estimate, drive, forward camera) is built on the same test bed.
+estimate, drive, forward camera) and the hopper (`devices.hopper`: the body `hop` launches) are
+built on the same test bed.
 
-The simulator's config types the capabilities' settings name (DriveError, Sun, ForwardCameraConfig)
-are re-exported here, so no capability imports drivers.sim.
+The simulator's config types the capabilities' settings name (DriveError, Sun, ForwardCameraConfig,
+HopperConfig) are re-exported here, so no capability imports drivers.sim.
 """
 from __future__ import annotations
 
@@ -22,6 +23,7 @@ from drivers.sim.testbed import SimulatedTestbed
 from ..config import Settings
 from .base import Device, Health
 from .cameras import CamerasDeviceConfig, StereoDevice
+from .hopper import Hopper, HopperBackend, HopperConfig, HopperDevice, HopperTruth, OffTerrain
 from .ptu import PtuDevice, PtuDeviceConfig
 from .rover import ForwardCameraConfig, RoverDevice
 from .tof import TofDevice, TofDeviceConfig
@@ -53,6 +55,7 @@ class Devices:
             "cameras": StereoDevice(config.cameras, clock, self.testbed),
         }
         self.rover = RoverDevice(self.testbed, lambda: self.simulated)  # not an item: see devices/rover.py
+        self.hopper = HopperDevice(self.testbed)  # not an item: see devices/hopper.py
 
     def __getitem__(self, name: str) -> Device:
         return self.items[name]
@@ -99,5 +102,6 @@ class Devices:
         return items
 
 
-__all__ = ["Devices", "DevicesConfig", "Device", "DriveError", "ForwardCameraConfig", "Health", "PtuDevice",
-           "RoverDevice", "StereoDevice", "Sun", "TofDevice"]
+__all__ = ["Devices", "DevicesConfig", "Device", "DriveError", "ForwardCameraConfig", "Health", "Hopper",
+           "HopperBackend", "HopperConfig", "HopperDevice", "HopperTruth", "OffTerrain", "PtuDevice", "RoverDevice",
+           "StereoDevice", "Sun", "TofDevice"]

@@ -1,20 +1,20 @@
 """The hopping rover (hopping paper): hop, hop-plan, hop-map.
 
     hop --speed V --elevation DEG --heading DEG    the hopper turns, launches and records its flight
-                                                   (simulated: drivers/sim/hopper.py on the test bed's
-                                                   world); product hop-NNN (store.py)
+                                                   (the hopper device, rvs_server/devices/hopper.py);
+                                                   product hop-NNN (store.py)
     hop-plan [--goal X,Y | --goal-heading DEG]     the last hop reconstructed, made metric, corrected by
                                                    ICP, and the next landing target (plan.py)
     hop-map                                        every hop-plan cloud so far on one top-down map, true
                                                    colour and false colour by hop (paper Fig 18)
 
-The server keeps the hopping state: the simulated hopper (made on first use at the configured start,
-on the world every emulated device shares), the hops so far and the estimated position of the
-hopper's centre of mass. It starts at the start position (heights are the map's: the start's ground
-is z = 0). A hop moves the estimate by the commanded hop on flat ground (dead reckoning); hop-plan
-replaces that with the reconstructed touchdown, and the next hop-plan starts from it, so the
-estimates chain. The state lives as long as the server process: a restart begins a new sequence at
-the start (the hop products stay).
+The server keeps the hopping state: the hops so far and the estimated position of the hopper's
+centre of mass (the simulated hopper itself is the device's: made on first use at the configured
+start, on the world every emulated device shares; a new world starts a new sequence). The estimate
+starts at the start position (heights are the map's: the start's ground is z = 0). A hop moves it
+by the commanded hop on flat ground (dead reckoning); hop-plan replaces that with the reconstructed
+touchdown, and the next hop-plan starts from it, so the estimates chain. The state lives as long as
+the server process: a restart begins a new sequence at the start (the hop products stay).
 """
 from __future__ import annotations
 
@@ -25,15 +25,13 @@ from typing import Any
 import numpy as np
 from pydantic import Field
 
-from drivers.sim.hopper import Hopper
-from drivers.sim.hopper_flight import OffTerrain
-
 from rvs_server.config import CommandConfig, Point
 from rvs_server.host import Host
+from rvs_server.devices import Hopper, HopperDevice, OffTerrain
 from rvs_server.dispatch import Module
 from rvs_server.hopping.settings import HoppingSettings
 from rvs_server.jobs import JobContext
-from rvs_server.protocol import BadRequest, DeviceError, WrongMode
+from rvs_server.protocol import BadRequest, WrongMode
 from rvs_server.products.rasters import write_geotiff, write_png
 from toolbox.colour import with_title
 from toolbox.geometry import rotation_z
@@ -41,10 +39,6 @@ from toolbox.hopping import hop_range
 from rvs_server.hopping.pictures import contact_sheet, global_maps
 from rvs_server.hopping.plan import run_hop_plan
 from rvs_server.hopping.store import cloud_of, next_hop_number, read_ply, write_hop, write_ply
-
-REAL_LINK_MISSING = ("hopper: backend \"real\" (hopping.toml) has no link to a hopper in this server: commanding "
-                     "the spring launch and downloading the frames, timestamps and IMU / sun-sensor readings is not "
-                     "implemented; set backend = \"sim\" to hop on the simulated world")
 
 module = Module("hopping", settings=HoppingSettings, summary="the hopping rover: hop, hop-plan, hop-map",
                 state=lambda server: HoppingState())
@@ -81,28 +75,24 @@ class HopEntry:
 
 
 class HoppingState:
-    """The hopper and what the server believes about it; one per server."""
+    """What the server believes about the hopper; one per server."""
 
     def __init__(self) -> None:
         self.start_sequence(None)
 
-    def start_sequence(self, world: Any) -> None:
-        self.world = world
-        self.hopper: Hopper | None = None
+    def start_sequence(self, sequence: object | None) -> None:
+        self.sequence = sequence                      # the device's run of hops from the start these belong to
         self.estimate: list[float] | None = None     # centre of mass, world frame (map heights)
         self.hops: list[HopEntry] = []
 
-    def hopper_on(self, world: Any, settings: HoppingSettings) -> Hopper:
-        """The simulated hopper: made at the start on first use; a new world starts a new sequence; a
-        changed hopper configuration (reinit) takes effect where the hopper stands."""
-        if self.hopper is None or self.world is not world:
-            self.start_sequence(world)
-            self.hopper = Hopper(world, settings.hopper, *settings.start, math.radians(settings.start_heading_deg))
-        elif self.hopper.config != settings.hopper:
-            old = self.hopper
-            self.hopper = Hopper(world, settings.hopper, old.x, old.y, old.heading)
-            self.hopper.hops = old.hops
-        return self.hopper
+    def hopper_on(self, device: HopperDevice, settings: HoppingSettings) -> Hopper:
+        """The hopper to hop with (the device's rules: made at the start on first use, a new world
+        starts a new sequence, a changed hopper configuration takes effect where it stands); the hops
+        and the estimate start again with a new sequence."""
+        hopper = device.require(settings.backend, settings.hopper, settings.start, settings.start_heading_deg)
+        if device.sequence is not self.sequence:
+            self.start_sequence(device.sequence)
+        return hopper
 
     def position(self, settings: HoppingSettings) -> np.ndarray:
         if self.estimate is None:   # at rest on the start's ground (z = 0): the centre one body radius up
@@ -146,8 +136,7 @@ def _settings(server: Host) -> HoppingSettings:
 # ------------------------------------------------------------------------------------ hop
 def _validate_hop(server: Host, cfg: HopConfig) -> None:
     settings = _settings(server)
-    if settings.backend == "real":
-        raise DeviceError(REAL_LINK_MISSING)
+    server.devices.hopper.check_backend(settings.backend)
     if cfg.speed > settings.max_speed_mps:
         raise BadRequest(f"hop: --speed = {cfg.speed:g}: above the hopper's fastest launch; allowed: float > 0 and "
                          f"<= {settings.max_speed_mps:g} (hopping.toml max_speed_mps)")
@@ -158,11 +147,10 @@ def hop(ctx: JobContext, cfg: HopConfig) -> dict[str, Any]:
     """Hop: turn to the heading, launch, record the flight's frames and the attitude sensors."""
     settings: HoppingSettings = ctx.settings
     state = ctx.state
-    testbed = ctx.devices.testbed
-    if not testbed.ready:
+    device: HopperDevice = ctx.devices.hopper
+    if not device.ready:
         ctx.progress(1, "waiting for the simulated world to be built")
-    testbed.wait_for_build()
-    hopper = state.hopper_on(testbed.world, settings)
+    hopper = state.hopper_on(device, settings)
     ctx.safe_point()   # the last moment to stop: a launched hop cannot be taken back
     ctx.progress(5, f"hop {hopper.hops + 1}: turning to {cfg.heading:g} deg, launching at {cfg.speed:g} m/s, "
                     f"{cfg.elevation:g} deg; the camera records the flight")

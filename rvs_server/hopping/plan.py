@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 import pycolmap
 
+from rvs_server.devices import HopperTruth
 from rvs_server.files import atomic_file
 from rvs_server.hopping.sfm import HopReconstruction, SfmConfig, densify, reconstruct_hop, timed
 from rvs_server.jobs import JobContext
@@ -292,11 +293,11 @@ def write_truth(ctx: JobContext, product: Any, observation: HopObservation, esti
     """Simulated hops: the estimate against the simulator's truth, and the target on the true obstacles."""
     hop_dir = ctx.server.products.root / observation.name
     truth = load_truth(hop_dir)
-    testbed = ctx.devices.testbed
-    if truth is None or not testbed.ready:
+    world = ctx.devices.hopper.truth()
+    if truth is None or world is None:
         return
-    world, settings = testbed.world, ctx.settings
-    offset = float(world.height_at(*settings.start))   # the map's heights start from the start's ground
+    settings = ctx.settings
+    offset = world.height_at(*settings.start)   # the map's heights start from the start's ground
     with np.load(hop_dir / "truth" / "poses.npz") as poses:
         first_pose = poses["camera_to_world"][estimate.registered[0]]
     comparison = truth_comparison(truth, estimate, plan, first_pose, observation.com_in_camera, offset)
@@ -338,13 +339,13 @@ def _error(estimated: np.ndarray, true: np.ndarray, hop_range: float) -> dict:
             "vertical_error_m": float(estimated[2] - true[2])}
 
 
-def target_truth(world: Any, plan: LandingPlan, settings: HoppingSettings) -> dict | None:
+def target_truth(world: HopperTruth, plan: LandingPlan, settings: HoppingSettings) -> dict | None:
     """Is the target's footprint (rover radius) clear of the world's obstacles, and how far is the nearest?"""
     if not plan.found:
         return None
     x, y = plan.target[:2]
     reach = 1.0
-    cell = world.grid.cell
+    cell = world.cell
     mask = world.obstacle_mask(settings.obstacle_m, cell, (x - reach, x + reach), (y - reach, y + reach))
     rows, cols = np.nonzero(mask)
     distances = np.hypot((cols + 0.5) * cell - reach, (rows + 0.5) * cell - reach)

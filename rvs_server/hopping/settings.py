@@ -10,9 +10,8 @@ from typing import Literal
 
 from pydantic import Field, model_validator
 
-from drivers.sim.hopper import HopperConfig
-
 from rvs_server.config import Point, Settings
+from rvs_server.devices import HopperBackend, HopperConfig
 from toolbox.hopping import MOON_GRAVITY, hop_range
 
 Mapper = Literal["global", "incremental"]   # how COLMAP maps a hop (sfm.py's module docstring says why)
@@ -29,7 +28,7 @@ class SfmSetting(Settings):
 class HoppingSettings(Settings):
     """configs/hopping.toml."""
 
-    backend: Literal["sim", "real"] = Field("sim", description="sim: the simulated hopper on the test bed's world")
+    backend: HopperBackend = Field("sim", description="sim: the simulated hopper on the test bed's world")
     start: Point = Field((0.0, 0.0), description="where the hopper starts, X,Y world metres; the estimate starts "
                          "there too")
     start_heading_deg: float = Field(0.0, ge=-180, le=180, description="the hopper's heading at the start")
