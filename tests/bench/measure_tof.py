@@ -11,7 +11,7 @@ import cv2
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[2]
-sys.path[:0] = [str(REPO), str(REPO / "tests")]
+sys.path[:0] = [str(REPO), str(REPO / "tests" / "drivers")]
 from test_sr4000 import mast_pose, range_errors, UNFILTERED
 from drivers.sim.world import World, WorldConfig
 from drivers.sim.clock import SimClock
