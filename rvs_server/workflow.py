@@ -17,6 +17,10 @@ with the file, the step and the reason. While running it reports PROGRESS per st
 each finished step's result into the job's recovery folder, so break, quit or a crash lose at most
 the running step, and records provenance (file, hash, resolved parameters, timings) for the
 product's manifest.
+
+A step's result is arrays, numbers, strings, GridSpecs, lists, tuples and dicts of them, and the
+dataclasses its Operations names with `result_types` (those come back from a checkpoint as
+themselves; any other dataclass as a dict of its fields).
 """
 from __future__ import annotations
 
@@ -87,6 +91,17 @@ class Operations:
 
     def __init__(self) -> None:
         self.items: dict[str, Operation] = {}
+        self.types: dict[str, type] = {}   # dataclasses step results may hold, by type_name
+
+    def result_types(self, *classes: type) -> None:
+        """The dataclasses these operations' results hold, each nested one named too, so that a step
+        resumed from its checkpoint hands on the same objects as one that ran."""
+        for cls in classes:
+            if not (dataclasses.is_dataclass(cls) and isinstance(cls, type)):
+                raise TypeError(f"{cls!r} is not a dataclass")
+            if not all(f.init for f in dataclasses.fields(cls)):
+                raise TypeError(f"{cls.__name__} has fields its constructor does not take")
+            self.types[type_name(cls)] = cls
 
     def register(self, name: str, params: type[BaseModel] = NoParams, inputs: tuple[str, ...] = (),
                  optional_inputs: tuple[str, ...] = ()) -> Callable[[Callable[..., Any]], Callable[..., Any]]:
@@ -240,12 +255,22 @@ def resolve_params(workflow: Workflow, operations: Operations, args: BaseModel |
 
 
 # ---------------------------------------------------------------------------------------------
-# Checkpoints: step results as JSON plus one .npz of their arrays
+# Checkpoints: step results as JSON plus one .npz of their arrays (numpy scalars too, so they come
+# back with their dtype)
 
 
-def save_result(directory: Path, step: str, result: Any) -> None:
+def type_name(cls: type) -> str:
+    return f"{cls.__module__}.{cls.__qualname__}"
+
+
+def save_result(directory: Path, step: str, result: Any, types: Mapping[str, type] | None = None,
+                seconds: float | None = None) -> None:
+    """`types`: the registered dataclasses (Operations.types); `seconds`: how long the step took,
+    kept so that a resumed job still knows it."""
     arrays: dict[str, np.ndarray] = {}
-    tree = _encode(result, arrays)
+    tree = _encode(result, arrays, types or {})
+    if seconds is not None:
+        tree = {"__result__": tree, "seconds": float(seconds)}
     directory.mkdir(parents=True, exist_ok=True)
     # The JSON goes first and comes back last: a step counts as done only when both halves are whole
     # and of the same save.
@@ -254,47 +279,65 @@ def save_result(directory: Path, step: str, result: Any) -> None:
     write_text_atomic(directory / f"{step}.json", json.dumps(tree))
 
 
-def load_result(directory: Path, step: str) -> Any:
+def load_result(directory: Path, step: str, types: Mapping[str, type] | None = None) -> Any:
+    return load_step(directory, step, types)[0]
+
+
+def load_step(directory: Path, step: str, types: Mapping[str, type] | None = None) -> tuple[Any, float | None]:
+    """A checkpointed result and the seconds its step took (None when not recorded)."""
     tree = json.loads((directory / f"{step}.json").read_text())
+    seconds = None
+    if isinstance(tree, dict) and "__result__" in tree:
+        tree, seconds = tree["__result__"], tree.get("seconds")
     with np.load(directory / f"{step}.npz", allow_pickle=False) as data:
         arrays = {key: data[key] for key in data.files}
-    return _decode(tree, arrays)
+    return _decode(tree, arrays, types or {}), seconds
 
 
 def has_result(directory: Path, step: str) -> bool:
     return (directory / f"{step}.json").exists() and (directory / f"{step}.npz").exists()
 
 
-def _encode(value: Any, arrays: dict[str, np.ndarray]) -> Any:
-    if isinstance(value, np.ndarray):
+def _encode(value: Any, arrays: dict[str, np.ndarray], types: Mapping[str, type]) -> Any:
+    if isinstance(value, (np.ndarray, np.generic)):
         key = f"a{len(arrays)}"
-        arrays[key] = value
-        return {"__array__": key}
+        arrays[key] = np.asarray(value)
+        return {"__array__" if isinstance(value, np.ndarray) else "__scalar__": key}
     if isinstance(value, GridSpec):
         return {"__grid__": value.to_json()}
-    if isinstance(value, np.generic):
-        return value.item()
     if isinstance(value, dict):
-        return {"__dict__": [[k, _encode(v, arrays)] for k, v in value.items()]}
+        return {"__dict__": [[k, _encode(v, arrays, types)] for k, v in value.items()]}
     if isinstance(value, (list, tuple)):
-        return {"__list__": [_encode(v, arrays) for v in value]}
+        return {"__tuple__" if isinstance(value, tuple) else "__list__": [_encode(v, arrays, types) for v in value]}
     if dataclasses.is_dataclass(value) and not isinstance(value, type):
-        return {"__dict__": [[f.name, _encode(getattr(value, f.name), arrays)] for f in dataclasses.fields(value)]}
+        fields = [[f.name, _encode(getattr(value, f.name), arrays, types)] for f in dataclasses.fields(value)]
+        name = type_name(type(value))
+        return {"__object__": name, "__dict__": fields} if types.get(name) is type(value) else {"__dict__": fields}
     if value is None or isinstance(value, (bool, int, float, str)):
         return value
     raise TypeError(f"a step result cannot hold {type(value).__name__}")
 
 
-def _decode(tree: Any, arrays: dict[str, np.ndarray]) -> Any:
+def _decode(tree: Any, arrays: dict[str, np.ndarray], types: Mapping[str, type]) -> Any:
     if isinstance(tree, dict):
         if "__array__" in tree:
             return arrays[tree["__array__"]]
+        if "__scalar__" in tree:
+            return arrays[tree["__scalar__"]][()]
         if "__grid__" in tree:
             return GridSpec.from_json(tree["__grid__"])
+        if "__object__" in tree:
+            cls = types.get(tree["__object__"])
+            if cls is None:
+                raise WorkflowError(f"a checkpoint holds a {tree['__object__']}, which no operation names as a "
+                                    "result type")
+            return cls(**{k: _decode(v, arrays, types) for k, v in tree["__dict__"]})
         if "__dict__" in tree:
-            return {k: _decode(v, arrays) for k, v in tree["__dict__"]}
+            return {k: _decode(v, arrays, types) for k, v in tree["__dict__"]}
         if "__list__" in tree:
-            return [_decode(v, arrays) for v in tree["__list__"]]
+            return [_decode(v, arrays, types) for v in tree["__list__"]]
+        if "__tuple__" in tree:
+            return tuple(_decode(v, arrays, types) for v in tree["__tuple__"])
     return tree
 
 
@@ -312,6 +355,7 @@ class StepContext:
     total: int
     scratch: Path                 # a folder of its own, kept across break / continue
     params_all: Mapping[str, Any] = field(default_factory=dict)
+    types: Mapping[str, type] = field(default_factory=dict)   # the operations' result types
 
     def progress(self, fraction: float, message: str) -> None:
         """Progress inside the step, 0..1; the job's percent counts whole steps."""
@@ -324,15 +368,22 @@ class StepContext:
 
     def save_partial(self, key: str, result: Any) -> None:
         """A finished piece of a long step (one view of many), so continue does not redo it."""
-        save_result(self.scratch, key, result)
+        save_result(self.scratch, key, result, self.types)
 
     def load_partial(self, key: str) -> Any | None:
-        return load_result(self.scratch, key) if has_result(self.scratch, key) else None
+        return load_result(self.scratch, key, self.types) if has_result(self.scratch, key) else None
+
+
+StepDone = Callable[[str, Any, float | None], None]   # on_step(name, result, seconds)
 
 
 def run_workflow(workflow: Workflow, operations: Operations, params: dict[str, BaseModel], job: JobContext,
-                 checkpoints: Path) -> tuple[dict[str, Any], list[dict[str, Any]]]:
+                 checkpoints: Path, on_step: StepDone | None = None) -> tuple[dict[str, Any], list[dict[str, Any]]]:
     """Run the steps in order; finished steps found in `checkpoints` are loaded, not run again.
+
+    on_step(name, result, seconds) is called as each step's result is there, run or loaded (seconds:
+    how long it took when it ran, None if not known), so a command can write the parts of its product a
+    step makes even when a later step fails, and write them again when a resumed job skips the step.
 
     Returns every step's result and the provenance of each step (op, parameters, seconds, whether
     it was resumed from a checkpoint)."""
@@ -344,22 +395,26 @@ def run_workflow(workflow: Workflow, operations: Operations, params: dict[str, B
         record = {"step": step.name, "op": step.op, "params": params[step.name].model_dump(mode="json"),
                   "inputs": dict(step.inputs)}
         if step.checkpoint and has_result(checkpoints, step.name):
-            results[step.name] = load_result(checkpoints, step.name)
+            results[step.name], took = load_step(checkpoints, step.name, operations.types)
             provenance.append({**record, "resumed": True})
+            if on_step is not None:
+                on_step(step.name, results[step.name], took)
             continue
         job.safe_point()
         job.progress(100.0 * (index - 1) / total, f"step {index}/{total} {step.name} ({step.op})")
         context = StepContext(job=job, step=step.name, index=index, total=total,
-                              scratch=checkpoints / "partial" / step.name)
+                              scratch=checkpoints / "partial" / step.name, types=operations.types)
         started = time.perf_counter()
         inputs = {key: results[source] for key, source in step.inputs.items()}
         result = op.func(context, params[step.name], **inputs)
         seconds = time.perf_counter() - started
         results[step.name] = result
         if step.checkpoint:
-            save_result(checkpoints, step.name, result)
+            save_result(checkpoints, step.name, result, operations.types, seconds)
             shutil.rmtree(context.scratch, ignore_errors=True)
         provenance.append({**record, "seconds": round(seconds, 4), "resumed": False})
+        if on_step is not None:
+            on_step(step.name, result, seconds)
     job.progress(100.0, f"workflow {workflow.name} done")
     return results, provenance
 

@@ -1,6 +1,7 @@
 """The workflow engine: checking files before anything runs, references, checkpoints and resume."""
 from __future__ import annotations
 
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -9,7 +10,7 @@ from pydantic import Field
 
 from rvs_server.config import CommandConfig, Settings
 from toolbox.grid import GridSpec
-from rvs_server.workflow import (Operations, StepParams, WorkflowError, load_result, load_workflow,
+from rvs_server.workflow import (Operations, StepParams, WorkflowError, load_result, load_step, load_workflow,
                                  resolve_params, run_workflow, save_result)
 
 ops = Operations()
@@ -151,3 +152,62 @@ def test_results_round_trip_through_checkpoints(tmp_path):
     back = load_result(tmp_path, "s")
     assert back["grid"] == value["grid"] and back["list"] == [1, "x", None, 3]
     assert np.array_equal(back["a"], value["a"]) and back["a"].dtype == np.float32
+
+
+@dataclass(frozen=True)
+class Fit:
+    scale: np.float64
+    axes: tuple[float, float] | None
+    inner: "Inner"
+    notes: dict = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class Inner:
+    points: np.ndarray
+    count: int
+
+
+@dataclass(frozen=True)
+class Unnamed:
+    value: float
+
+
+def test_results_holding_dataclasses_come_back_as_themselves(tmp_path):
+    """A step whose result is not arrays (hop-plan's reconstruction, estimate, plan): the dataclasses its
+    operations name come back as themselves, numpy scalars with their dtype and tuples as tuples, so a
+    resumed step hands on what a run one would; a dataclass not named comes back as a dict, as before."""
+    types = Operations()
+    types.result_types(Fit, Inner)
+    value = {"fit": Fit(np.float64(0.25), (1.0, 2.0), Inner(np.arange(3.0), 3), {"ok": np.bool_(True)}),
+             "cell": (2, 3), "other": Unnamed(1.5), "none": None}
+    save_result(tmp_path, "s", value, types.types, seconds=1.25)
+    back, seconds = load_step(tmp_path, "s", types.types)
+    fit = back["fit"]
+    assert isinstance(fit, Fit) and isinstance(fit.inner, Inner) and seconds == 1.25
+    assert type(fit.scale) is np.float64 and fit.scale == 0.25 and fit.axes == (1.0, 2.0)
+    assert np.array_equal(fit.inner.points, value["fit"].inner.points) and fit.inner.count == 3
+    assert type(fit.notes["ok"]) is np.bool_ and back["cell"] == (2, 3) and back["none"] is None
+    assert back["other"] == {"value": 1.5}
+    with pytest.raises(WorkflowError, match="no operation names"):
+        load_result(tmp_path, "s")
+    with pytest.raises(TypeError, match="not a dataclass"):
+        types.result_types(dict)
+    save_result(tmp_path, "plain", {"a": 1})   # saved without seconds, as partial results are
+    assert load_step(tmp_path, "plain") == ({"a": 1}, None)
+
+
+def test_on_step_sees_each_result_as_it_is_made_or_loaded_with_its_seconds(tmp_path):
+    flow = load_workflow(write(tmp_path, GOOD), ops, Args, Conf)
+    params = resolve_params(flow, ops, Args(count=2), Conf())
+
+    class Job:
+        def progress(self, *a): pass
+        def safe_point(self): pass
+    seen: list[tuple[str, float | None]] = []
+    first, _ = run_workflow(flow, ops, params, Job(), tmp_path / "ckpt", on_step=lambda n, r, s: seen.append((n, s)))
+    assert [name for name, _ in seen] == ["make", "scaled"] and all(s is not None and s >= 0 for _, s in seen)
+    again: list[tuple[str, object, float | None]] = []
+    run_workflow(flow, ops, params, Job(), tmp_path / "ckpt", on_step=lambda n, r, s: again.append((n, r, s)))
+    assert [(name, s) for name, _, s in again] == seen   # loaded, with the seconds the run took
+    assert np.array_equal(again[1][1]["values"], first["scaled"]["values"])
