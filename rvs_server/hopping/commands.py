@@ -4,7 +4,8 @@
                                                    (the hopper device, rvs_server/devices/hopper.py);
                                                    product hop-NNN (store.py)
     hop-plan [--goal X,Y | --goal-heading DEG]     the last hop reconstructed, made metric, corrected by
-                                                   ICP, and the next landing target (plan.py)
+                                                   ICP, and the next landing target (plan.py: the
+                                                   workflow workflows/hop-plan.yaml of steps.py)
     hop-map                                        every hop-plan cloud so far on one top-down map, true
                                                    colour and false colour by hop (paper Fig 18)
 
@@ -37,7 +38,7 @@ from toolbox.colour import with_title
 from toolbox.geometry import rotation_z
 from toolbox.hopping import hop_range
 from rvs_server.hopping.pictures import contact_sheet, global_maps
-from rvs_server.hopping.plan import run_hop_plan
+from rvs_server.hopping.plan import check_workflow, run_hop_plan
 from rvs_server.hopping.store import cloud_of, next_hop_number, read_ply, write_hop, write_ply
 
 module = Module("hopping", settings=HoppingSettings, summary="the hopping rover: hop, hop-plan, hop-map",
@@ -179,6 +180,7 @@ def _validate_plan(server: Host, cfg: HopPlanConfig) -> None:
         raise BadRequest(f"hop-plan: --goal = {cfg.goal[0]},{cfg.goal[1]}: must be finite numbers")
     if not state_of(server).hops:
         raise WrongMode("hop-plan: no hop yet: hop --speed V --elevation DEG --heading DEG first")
+    check_workflow(server)
 
 
 @module.job("hop-plan", HopPlanConfig, validate=_validate_plan)

@@ -38,16 +38,22 @@ class EstimateError(ValueError):
 
 
 @dataclass(frozen=True)
-class EstimateParams:
+class FitParams:
+    """What the first parabola fit needs: hop-plan's SfM step checks each reconstruction with it."""
+
     gravity: float
+    min_registered: float         # share of the frames SfM must register
+    min_inliers: float            # share of the registered frames the parabola fit must keep
+
+
+@dataclass(frozen=True)
+class EstimateParams(FitParams):
     icp_voxel: float
     icp_initial_distance: float   # how far the launch estimate may be off: ICP's first correspondence distance
     icp_crop: float               # the alignment uses the ground within this of the launch estimate
     icp_max_yaw_deg: float        # a larger turn is a false match
     icp_min_contrast: float       # the height match's runner-up misfit / its best: less is ground too flat
     icp_distinct: float           # m: shifts farther than this from the best are its rivals
-    min_registered: float         # share of the frames SfM must register
-    min_inliers: float            # share of the registered frames the parabola fit must keep
 
 
 @dataclass(frozen=True)
@@ -102,7 +108,7 @@ def estimate_hop(observation: HopObservation, sfm: HopReconstruction, cloud_sfm:
     return replace(estimate, touchdown=point, touchdown_tau=tau)
 
 
-def first_fit(observation: HopObservation, sfm: HopReconstruction, params: EstimateParams):
+def first_fit(observation: HopObservation, sfm: HopReconstruction, params: FitParams):
     """(registered frame indices, gravity in the SfM frame, the parabola fit to their camera centres)."""
     index = registered_frames(sfm, params.min_registered)
     times = observation.timestamps[index]
@@ -112,7 +118,7 @@ def first_fit(observation: HopObservation, sfm: HopReconstruction, params: Estim
     return index, gravity_sfm, fit
 
 
-def flight_check(observation: HopObservation, sfm: HopReconstruction, params: EstimateParams) -> tuple[float, str]:
+def flight_check(observation: HopObservation, sfm: HopReconstruction, params: FitParams) -> tuple[float, str]:
     """How cleanly the reconstruction flies a parabola: (share of the frames the fit keeps, of all the hop's
     frames; what falls short of min_registered / min_inliers, or "" when nothing does). hop-plan tries its
     next SfM setting when something does."""

@@ -1,46 +1,68 @@
 """hop-plan's job: the last hop's frames to a corrected position and the next landing target.
 
-The steps, each timed, in the paper's order (Fig 3):
+The chain is a workflow (workflows/hop-plan.yaml, operations in steps.py), each step timed and
+checkpointed like the maps' steps, so `continue` after a break or a crash resumes at the step that
+was running:
     sfm        COLMAP through pycolmap on the CPU (global mapping), the camera's calibration held fixed (sfm)
     dense      two-view SGBM on pairs rectified from the SfM poses (sfm.densify)
     estimate   scale and gravity from the parabola, the cloud into the world at the launch estimate,
                ICP against the previous hop's cloud, the touchdown (estimate)
     plan       top-down maps, obstacle and safe-landing masks, the target and its launch (plan_landing)
+then, here:
     write      the product's pictures, clouds and JSON; simulated, truth/ comparisons
-The reconstruction is checkpointed into the product (sfm.npz), so `continue` after a break skips it.
+The reconstruction goes into the product (sfm.npz) as soon as its step is done.
 """
 from __future__ import annotations
 
 import csv
 import math
-from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import pycolmap
+from pydantic import BaseModel, ConfigDict, Field
 
+from rvs_server.config import Point
 from rvs_server.devices import HopperTruth
 from rvs_server.files import atomic_file
-from rvs_server.hopping.sfm import HopReconstruction, SfmConfig, densify, reconstruct_hop, timed
+from rvs_server.hopping.sfm import timed
 from rvs_server.jobs import JobContext
 from rvs_server.protocol import BadRequest, RvsError
 from rvs_server.products.rasters import write_geotiff, write_png
+from rvs_server.workflow import Workflow, WorkflowError, load_workflow, resolve_params, run_workflow
 from toolbox.geometry import apply
-from toolbox.hopping import LandingParams, LandingPlan, NoGroundError, plan_landing
-from rvs_server.hopping.estimate import EstimateError, EstimateParams, HopEstimate, estimate_hop, flight_check
+from toolbox.hopping import LandingPlan
+from rvs_server.hopping.estimate import HopEstimate
 from rvs_server.hopping.pictures import plan_pictures, trajectory_picture, truth_target_picture
 from rvs_server.hopping.settings import HoppingSettings
-from rvs_server.hopping.store import (HopObservation, cloud_of, load_observation, load_reconstruction, load_truth, read_ply,
-                            save_reconstruction, write_ply)
+from rvs_server.hopping.steps import LandingStepParams, Refused, operations
+from rvs_server.hopping.store import HopObservation, load_observation, load_truth, save_reconstruction, write_ply
 
+if TYPE_CHECKING:
+    from rvs_server.host import Host
+
+WORKFLOW = "hop-plan"
 FRAME_NOTE = ("world frame: x east, y north, z up, metres, heights relative to the start's ground; positions "
               "are the hopper's centre of mass; headings degrees counter-clockwise from east")
 NO_TARGET = {"no_candidate": "no cell in reach has its whole landing error ellipse clear of obstacles and unseen "
                              "ground",
              "all_candidates_rejected": "every candidate examined was out of reach or its flight would hit the "
                                         "terrain"}
+
+
+class HopPlanArgs(BaseModel):
+    """What hop-plan's workflow sees as $args: the hop to plan from (the server's state, kept in the
+    job's checkpoint so `continue` needs no state) and the command's options."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    hop: str = Field(..., description="the hop product")
+    launch: list[float] = Field(..., description="estimated centre of mass at launch, world")
+    previous_cloud: str = Field("", description="the previous hop-plan's corrected cloud (PLY); empty: none")
+    previous_plan: str = Field("", description="the hop-plan product it is from; empty: none")
+    goal: Point | None = None
+    goal_heading: float | None = None
 
 
 @dataclass
@@ -54,147 +76,69 @@ class PlanOutcome:
     error: RvsError | None     # no landing target: raised after the state took the new position
 
 
+def workflow_path(server: Host) -> Path:
+    settings: HoppingSettings = server.settings_of("hopping")
+    base = Path(settings.workflows_dir)
+    if not base.is_absolute():
+        base = server.config_dir.resolve() / base
+    return base / f"{WORKFLOW}.yaml"
+
+
+def check_workflow(server: Host) -> Workflow:
+    """Load and check hop-plan's workflow: a broken file is refused before anything runs."""
+    try:
+        return load_workflow(workflow_path(server), operations, HopPlanArgs, HoppingSettings)
+    except WorkflowError as exc:
+        raise BadRequest(f"hop-plan: workflow refused: {exc}") from None
+
+
 def run_hop_plan(ctx: JobContext, cfg: Any, inputs: dict, settings: HoppingSettings) -> PlanOutcome:
     """inputs: hop (product name), number, launch (estimated centre of mass at launch), previous_cloud
     (PLY path or None), previous_plan; they travel in the checkpoint so `continue` needs no state."""
-    hop_dir = ctx.server.products.root / inputs["hop"]
-    observation = load_observation(hop_dir)
+    workflow = check_workflow(ctx.server)
+    args = HopPlanArgs(hop=inputs["hop"], launch=inputs["launch"], previous_cloud=inputs.get("previous_cloud") or "",
+                       previous_plan=inputs.get("previous_plan") or "", goal=cfg.goal, goal_heading=cfg.goal_heading)
+    try:
+        params = resolve_params(workflow, operations, args, settings)
+    except WorkflowError as exc:
+        raise BadRequest(f"hop-plan: {exc}") from None
+    observation = load_observation(ctx.server.products.root / inputs["hop"])
     product = ctx.product(cfg, name=f"hop-plan-{inputs['number']:03d}")
-    done = dict((ctx.resume or {}).get("done", {}))
-    ctx.checkpoint({"product": product.name, "inputs": inputs, "done": done})
+    ctx.checkpoint({"product": product.name, "inputs": inputs})
     product.note("inputs", [{"hop": inputs["hop"]}, {"previous_plan": inputs.get("previous_plan")}])
     timings: dict[str, float] = {}
-    sfm = structure_from_motion(ctx, product, observation, settings, inputs, done, timings)
-    ctx.safe_point()
-    ctx.progress(55, f"dense cloud: pairs of {int(sfm.registered.sum())} registered frames, SGBM")
-    with timed(timings, "dense"):
-        cloud_sfm, colours = densify(observation.frames, sfm, observation.camera)
-    ctx.safe_point()
-    previous = inputs.get("previous_cloud")
-    ctx.progress(70, "scale and gravity from the parabola" +
-                 (f"; position correction by ICP against {inputs.get('previous_plan')}" if previous else ""))
-    with timed(timings, "estimate"):
-        estimate = _estimate(observation, sfm, cloud_sfm, inputs, previous, settings, product)
-    ctx.progress(82, "landing target: obstacles, error ellipses, selection, collision check")
-    goal_heading, goal_xy = _goal(cfg, estimate)
-    with timed(timings, "plan"):
-        try:
-            plan = plan_landing(estimate.result.cloud, estimate.touchdown, goal_heading, goal_xy,
-                                landing_params(settings), colours)
-        except NoGroundError as exc:    # a wrong scale or flight puts the touchdown off the cloud
-            raise BadRequest(f"hop-plan: {inputs['hop']} not reconstructed well enough: {exc}; "
-                             f"product={product.name}", data={"product": product.name}) from None
-    ctx.progress(90, f"writing {product.name}")
+
+    def finished(step: str, result: Any, seconds: float | None) -> None:
+        if seconds is not None:
+            timings[step] = seconds
+        if step == "sfm":   # in the product at once, also when a later step refuses the hop
+            write_reconstruction(product, result)
+
+    try:
+        results, provenance = run_workflow(workflow, operations, params, ctx,
+                                           ctx.server.recovery.folder(ctx.job.id) / "steps", on_step=finished)
+    except Refused as exc:
+        raise BadRequest(f"hop-plan: {exc}; product={product.name}", data={"product": product.name}) from None
+    product.note("workflow", {"file": str(workflow.path), "name": workflow.name, "sha256_16": workflow.digest,
+                              "steps": provenance, "args": args.model_dump(mode="json")})
+    sfm, estimate, planned = results["sfm"]["reconstruction"], results["estimate"], results["plan"]
+    plan = planned["plan"]
+    ctx.progress(100.0, f"writing {product.name}")
     with timed(timings, "write"):
-        cloud_path = write_plan_product(ctx, product, observation, sfm, estimate, colours, plan, inputs, timings,
-                                        (goal_heading, goal_xy))
+        cloud_path = write_plan_product(ctx, product, observation, sfm, estimate, results["dense"]["colours"], plan,
+                                        inputs, timings, (planned["goal_heading"], planned["goal_xy"]))
     for step, seconds in timings.items():
         product.timing(step, seconds)
     reply = {**ctx.finish_product(product), **_reply_values(estimate, plan)}
-    return PlanOutcome(reply, estimate, plan, cloud_path, _no_target(plan, product.name, settings))
+    return PlanOutcome(reply, estimate, plan, cloud_path, _no_target(plan, product.name, params["plan"]))
 
 
-# ------------------------------------------------------------------------------------ the steps
-def structure_from_motion(ctx: JobContext, product: Any, observation: HopObservation, settings: HoppingSettings,
-                          inputs: dict, done: dict, timings: dict) -> HopReconstruction:
-    """COLMAP on the hop's frames, or the reconstruction an interrupted run already checkpointed."""
-    saved = product.file("sfm.npz")
-    if "sfm" in done and saved.exists():
-        ctx.progress(50, "structure from motion: taken from the interrupted run")
-        timings["sfm"] = done["sfm"]
-        return load_reconstruction(saved)
-    workdir = ctx.server.recovery.folder(ctx.job.id) / "colmap"
-    with timed(timings, "sfm"), colmap_quiet():
-        sfm, attempts = reconstruct_cleanly(ctx, observation, settings, workdir, inputs["hop"])
-    product.note("sfm_attempts", attempts)
-    product.add("sfm.npz", "the reconstruction in COLMAP's frame (arbitrary scale and axes): camera centres and "
-                "rotations per frame (NaN: not registered), sparse points, COLMAP's timings")
-    save_reconstruction(saved, sfm)
-    ctx.progress(50, f"structure from motion: {int(sfm.registered.sum())} of {len(sfm.registered)} frames "
-                     f"registered, {len(sfm.points)} points, {timings['sfm']:.1f} s")
-    done["sfm"] = timings["sfm"]
-    ctx.checkpoint({"product": product.name, "inputs": inputs, "done": done})
-    return sfm
-
-
-def reconstruct_cleanly(ctx: JobContext, observation: HopObservation, settings: HoppingSettings, workdir: Path,
-                        hop: str) -> tuple[HopReconstruction, list[dict]]:
-    """SfM with hopping.toml's setting, then each of sfm_fallbacks in turn while the reconstruction is not a
-    clean flight (estimate.flight_check). Every setting bends a few hops at random, seldom the same
-    ones. Returns the first clean reconstruction, or the one whose parabola fit kept most frames, and what
-    each attempt gave."""
-    settings_tried = [(settings.sfm_mapper, settings.sfm_first_octave)] + \
-        [(fallback.mapper, fallback.first_octave) for fallback in settings.sfm_fallbacks]
-    params = estimate_params(settings)
-    best, best_share, attempts = None, -1.0, []
-    for number, (mapper, octave) in enumerate(settings_tried, start=1):
-        ctx.safe_point()
-        ctx.progress(5, f"structure from motion (COLMAP, {mapper} mapping, SIFT octave {octave}, CPU), attempt "
-                        f"{number}: {len(observation.frames)} frames of {hop}")
-        config = SfmConfig(max_features=settings.sfm_max_features, first_octave=octave, mapper=mapper,
-                           num_threads=settings.sfm_threads)
-        sfm = reconstruct_hop(observation.frames, observation.timestamps, observation.camera, workdir, config)
-        share, problem = flight_check(observation, sfm, params)
-        attempts.append({"mapper": mapper, "first_octave": octave, "registered": int(sfm.registered.sum()),
-                         "fit_share": round(share, 4), "problem": problem,
-                         "seconds": round(sfm.timings.get("total", math.nan), 2)})
-        if share > best_share:
-            best, best_share = sfm, share
-        if not problem:
-            break
-        ctx.progress(5, f"structure from motion, attempt {number}: {problem}")
-    return best, attempts
-
-
-@contextmanager
-def colmap_quiet():
-    """COLMAP logs every image it registers at INFO: keep its warnings and errors only."""
-    level = pycolmap.logging.minloglevel
-    pycolmap.logging.minloglevel = 1
-    try:
-        yield
-    finally:
-        pycolmap.logging.minloglevel = level
-
-
-def _estimate(observation, sfm, cloud_sfm, inputs, previous: str | None, settings, product) -> HopEstimate:
-    if len(cloud_sfm) < 100:
-        raise BadRequest(f"hop-plan: the dense cloud of {inputs['hop']} has {len(cloud_sfm)} points: too few to map "
-                         f"the landing area; product={product.name}", data={"product": product.name})
-    previous_cloud = cloud_of(read_ply(Path(previous)))[0] if previous and Path(previous).exists() else None
-    try:
-        return estimate_hop(observation, sfm, cloud_sfm, np.asarray(inputs["launch"]), previous_cloud,
-                            estimate_params(settings))
-    except EstimateError as exc:
-        raise BadRequest(f"hop-plan: {inputs['hop']} not reconstructed well enough: {exc}; product={product.name}",
-                         data={"product": product.name}) from None
-
-
-def estimate_params(settings: HoppingSettings) -> EstimateParams:
-    return EstimateParams(gravity=settings.gravity_mps2, icp_voxel=settings.icp_voxel_m,
-                          icp_initial_distance=settings.icp_initial_distance_m, icp_crop=settings.icp_crop_m,
-                          icp_max_yaw_deg=settings.icp_max_yaw_deg, icp_min_contrast=settings.icp_min_contrast,
-                          icp_distinct=settings.icp_distinct_m, min_registered=settings.min_registered,
-                          min_inliers=settings.min_fit_inliers)
-
-
-def _goal(cfg: Any, estimate: HopEstimate) -> tuple[float | None, np.ndarray | None]:
-    """The goal point, the goal heading, or on along this hop's heading."""
-    if cfg.goal is not None:
-        return None, np.asarray(cfg.goal, float)
-    if cfg.goal_heading is not None:
-        return math.radians(cfg.goal_heading), None
-    return estimate.heading, None
-
-
-def landing_params(settings: HoppingSettings) -> LandingParams:
-    return LandingParams(cell=settings.cell_m, gravity=settings.gravity_mps2, obstacle_threshold=settings.obstacle_m,
-                         min_distance=settings.min_hop_m, max_distance=settings.max_hop_m,
-                         elevation=math.radians(settings.elevation_deg), sigma_speed=settings.sigma_speed_mps,
-                         sigma_elevation=math.radians(settings.sigma_elevation_deg),
-                         sigma_heading=math.radians(settings.sigma_heading_deg),
-                         sigma_position=settings.sigma_position_m, rover_radius=settings.rover_radius_m,
-                         safety_weight=settings.safety_weight, goal_weight=1.0 - settings.safety_weight)
+def write_reconstruction(product: Any, sfm: dict) -> None:
+    """The SfM step's result into the product: what each attempt gave, and the reconstruction."""
+    product.note("sfm_attempts", sfm["attempts"])
+    save_reconstruction(product.add("sfm.npz", "the reconstruction in COLMAP's frame (arbitrary scale and axes): "
+                                    "camera centres and rotations per frame (NaN: not registered), sparse points, "
+                                    "COLMAP's timings"), sfm["reconstruction"])
 
 
 def _reply_values(estimate: HopEstimate, plan: LandingPlan) -> dict[str, Any]:
@@ -207,11 +151,11 @@ def _reply_values(estimate: HopEstimate, plan: LandingPlan) -> dict[str, Any]:
             "position": position}
 
 
-def _no_target(plan: LandingPlan, product: str, settings: HoppingSettings) -> RvsError | None:
+def _no_target(plan: LandingPlan, product: str, params: LandingStepParams) -> RvsError | None:
     if plan.found:
         return None
     return BadRequest(f"hop-plan: no landing target: {plan.reason}: {NO_TARGET.get(plan.reason, plan.reason)} "
-                      f"({settings.min_hop_m:g}-{settings.max_hop_m:g} m from the touchdown, "
+                      f"({params.min_hop_m:g}-{params.max_hop_m:g} m from the touchdown, "
                       f"{len(plan.rejected)} candidates rejected); product={product}",
                       data={"product": product, "reason": plan.reason})
 

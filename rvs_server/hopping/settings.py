@@ -79,6 +79,9 @@ class HoppingSettings(Settings):
     safety_weight: float = Field(0.5, ge=0, le=1, description="selection: clearance weight (the goal gets the rest)")
     # hop-map and pictures.
     map_cell_m: float = Field(0.02, gt=0.005, le=0.5, description="cell of hop-map's global map")
+    # hop-plan's steps: workflows/hop-plan.yaml names them and the settings above they read.
+    workflows_dir: str = Field("../workflows", description="where hop-plan.yaml is, relative to the config "
+                               "directory")
 
     @model_validator(mode="after")
     def _reachable(self) -> "HoppingSettings":

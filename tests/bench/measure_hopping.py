@@ -62,6 +62,7 @@ def start_server(root: Path, seed: int, size: float, cover: float, settings: str
     shutil.rmtree(root, ignore_errors=True)
     configs = root / "configs"
     shutil.copytree(REPO / "configs", configs)
+    shutil.copytree(REPO / "workflows", root / "workflows")   # hop-plan's workflow, beside the configs
     (configs / "world.toml").write_text(WORLD.format(seed=seed, size=size, cover=cover))
     text = (configs / "hopping.toml").read_text()
     for old, new in (("[hopper]\nseed = 5", f"[hopper]\nseed = {seed}"),

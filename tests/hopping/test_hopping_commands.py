@@ -4,6 +4,7 @@ camera at 320x240 without motion blur, so one hop and its reconstruction take ab
 The chain: hop, hop-plan (SfM, dense cloud, parabola, target), a second hop to the target it chose,
 hop-plan again (now with the ICP correction against the first cloud), hop-map. The estimates are
 scored against the simulator's truth, read from the hop products' truth/ and from the world itself.
+hop-plan's steps are a workflow (workflows/hop-plan.yaml): break and continue resume at the step.
 """
 from __future__ import annotations
 
@@ -20,6 +21,7 @@ from conftest import SMALL_WORLD, pairs
 from drivers.sim.config import WorldConfig
 from drivers.sim.world import World
 from rvs_server.hopping.store import read_ply
+from rvs_server.products.rasters import read_geotiff
 
 HOPPING = """sfm_threads = 1   # repeatable reconstructions: COLMAP's threads finish in varying order
 [hopper.camera]
@@ -152,6 +154,85 @@ def test_hop_plan_tries_each_sfm_setting_and_refuses_a_flight_none_makes_clean(s
     attempts = json.loads((products / "hop-plan-001" / "product.json").read_text())["sfm_attempts"]
     assert [(a["mapper"], a["first_octave"]) for a in attempts] == [("global", 0), ("incremental", 0)]
     assert all(a["problem"] and 0 <= a["fit_share"] < 0.6 for a in attempts), attempts
+
+
+def test_break_and_continue_resume_hop_plan_at_the_step_and_give_the_same_product(server_factory, tmp_path):
+    """hop-plan broken after its dense step: continue takes the reconstruction and the dense cloud from
+    their checkpoints, runs the estimate and the plan, and writes what an uninterrupted run writes."""
+    hop = "hop --speed 1.5 --elevation 60 --heading 0"
+    plain = server_factory(data_dir=tmp_path / "plain", configs={"hopping.toml": HOPPING})
+    with plain.connect(timeout=300) as c:
+        assert pairs(c.command(hop, timeout=120))["product"] == "hop-001"
+        line, progress = command(c, "hop-plan", timeout=240)
+    reference = pairs(line)
+    assert reference["product"] == "hop-plan-001", line
+    assert [p for p in progress if "step 1/4 sfm" in p] and [p for p in progress if "step 4/4 plan" in p]
+    broken = server_factory(data_dir=tmp_path / "broken")
+    with broken.connect(timeout=300) as c:
+        assert pairs(c.command(hop, timeout=120))["product"] == "hop-001"
+        c.send("@r hop-plan")
+        while not ("r PROGRESS" in (seen := c.read_line(timeout=240)) and "step 2/4 dense" in seen):
+            pass
+        brk = pairs(c.command("break", timeout=120))
+        reply, _ = c.reply("r", timeout=120)
+        assert "ERR 499 interrupted" in reply and brk["recovery"] == brk["job"], reply
+        line, resumed = command(c, "continue", timeout=240)
+    assert {k: v for k, v in pairs(line).items() if k not in ("job", "path")} == \
+        {k: v for k, v in reference.items() if k not in ("job", "path")}, (line, reference)
+    assert not [p for p in resumed if "structure from motion" in p or "dense cloud" in p], resumed
+    assert [p for p in resumed if "step 3/4 estimate" in p], resumed
+    folder = broken.data_dir / "products" / "hop-plan-001"
+    manifest = json.loads((folder / "product.json").read_text())
+    steps = {s["step"]: s["resumed"] for s in manifest["workflow"]["steps"]}
+    assert steps == {"sfm": True, "dense": True, "estimate": False, "plan": False}, steps
+    assert {"sfm", "dense", "estimate", "plan", "write"} <= set(manifest["timings_s"])
+    assert_same_product(plain.data_dir / "products" / "hop-plan-001", folder)
+
+
+def assert_same_product(a: Path, b: Path) -> None:
+    """File for file: arrays exactly, JSON without its timings (product.json: its files and notes)."""
+    files = sorted(p.relative_to(a) for p in a.rglob("*") if p.is_file())
+    assert files == sorted(p.relative_to(b) for p in b.rglob("*") if p.is_file())
+    for name in files:
+        x, y = a / name, b / name
+        if name.suffix == ".npz":
+            with np.load(x) as first, np.load(y) as other:
+                assert first.files == other.files, name
+                for key in first.files:
+                    if key != "timings":   # COLMAP's own seconds
+                        assert np.array_equal(first[key], other[key], equal_nan=first[key].dtype.kind == "f"), \
+                            (name, key)
+        elif name.suffix == ".tif":
+            assert np.array_equal(read_geotiff(x)[0], read_geotiff(y)[0], equal_nan=True), name
+        elif name.name == "product.json":   # what it holds, not when
+            first, other = (json.loads(p.read_text()) for p in (x, y))
+            for key in ("files", "inputs", "arguments", "status", "sfm_attempts"):
+                assert untimed(first[key]) == untimed(other[key]), key
+        elif name.suffix == ".json":
+            assert untimed(json.loads(x.read_text())) == untimed(json.loads(y.read_text())), name
+        else:
+            assert x.read_bytes() == y.read_bytes(), name
+
+
+def untimed(tree) -> str:
+    """A JSON document without its timings, as text (NaN, which JSON documents hold, equals itself there)."""
+    def drop(node):
+        if isinstance(node, dict):
+            return {k: drop(v) for k, v in node.items() if k not in ("timings_s", "seconds")}
+        return [drop(v) for v in node] if isinstance(node, list) else node
+    return json.dumps(drop(tree), sort_keys=True)
+
+
+def test_a_broken_workflow_file_is_refused_before_anything_runs(server_factory):
+    server = server_factory(configs={"hopping.toml": HOPPING})
+    workflow = server.config_dir.parent / "workflows" / "hop-plan.yaml"
+    with server.connect(timeout=300) as c:
+        assert pairs(c.command("hop --speed 1.5 --elevation 60 --heading 0", timeout=120))["product"] == "hop-001"
+        workflow.write_text(workflow.read_text().replace("op: hop.landing", "op: hop.landnig"))
+        reply = c.command("hop-plan")
+    assert reply.split()[1:3] == ["ERR", "400"] and "hop-plan: workflow refused" in reply, reply
+    assert "step 4 (plan)" in reply and "did you mean hop.landing" in reply, reply
+    assert not list((server.data_dir / "products").glob("hop-plan-*"))
 
 
 def test_bad_options_name_the_field_and_change_nothing(server_factory):
