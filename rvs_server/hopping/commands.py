@@ -39,7 +39,8 @@ from toolbox.geometry import rotation_z
 from toolbox.hopping import hop_range
 from rvs_server.hopping.pictures import contact_sheet, global_maps
 from rvs_server.hopping.plan import check_workflow, run_hop_plan
-from rvs_server.hopping.store import cloud_of, next_hop_number, read_ply, write_hop, write_ply
+from rvs_server.hopping.store import cloud_of, next_hop_number, write_hop
+from rvs_server.products.ply import read_ply, write_ply
 
 module = Module("hopping", settings=HoppingSettings, summary="the hopping rover: hop, hop-plan, hop-map",
                 state=lambda server: HoppingState())

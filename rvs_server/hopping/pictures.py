@@ -17,6 +17,7 @@ from toolbox.colour import NO_DATA_RGB, colourise, upscale, with_colour_bar, wit
 from toolbox.geometry import apply, invert
 from toolbox.grid import GridSpec
 from toolbox.hopping import LandingPlan, top_down_maps
+from rvs_server.products.canvas import sheet
 from rvs_server.hopping.estimate import HopEstimate, flight_positions
 
 HOP_COLOURS = [(230, 25, 75), (60, 180, 75), (255, 225, 25), (0, 130, 200), (245, 130, 48), (145, 30, 180),
@@ -49,10 +50,7 @@ def contact_sheet(frames: np.ndarray, timestamps: np.ndarray, count: int, column
         cv2.rectangle(tile, (0, 0), (170, 20), (20, 20, 20), -1)
         _text(tile, f"#{index}  t = {timestamps[index]:.3f} s", (4, 14))
         tiles.append(tile)
-    blank = np.full_like(tiles[0], 20)
-    tiles += [blank] * (-len(tiles) % columns)
-    rows = [np.concatenate(tiles[k:k + columns], axis=1) for k in range(0, len(tiles), columns)]
-    return np.concatenate(rows, axis=0)
+    return sheet(tiles, columns)
 
 
 # ------------------------------------------------------------------------------------ side view

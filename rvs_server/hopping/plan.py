@@ -37,7 +37,8 @@ from rvs_server.hopping.estimate import HopEstimate
 from rvs_server.hopping.pictures import plan_pictures, trajectory_picture, truth_target_picture
 from rvs_server.hopping.settings import HoppingSettings
 from rvs_server.hopping.steps import LandingStepParams, Refused, operations
-from rvs_server.hopping.store import HopObservation, load_observation, load_truth, save_reconstruction, write_ply
+from rvs_server.hopping.store import HopObservation, load_observation, load_truth, save_reconstruction
+from rvs_server.products.ply import write_ply
 
 if TYPE_CHECKING:
     from rvs_server.host import Host

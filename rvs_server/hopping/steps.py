@@ -32,7 +32,8 @@ from rvs_server.hopping.estimate import (EstimateError, EstimateParams, FitParam
                                          flight_check)
 from rvs_server.hopping.settings import Mapper, SfmSetting
 from rvs_server.hopping.sfm import HopReconstruction, SfmConfig, densify, reconstruct_hop
-from rvs_server.hopping.store import HopObservation, cloud_of, load_observation, read_ply
+from rvs_server.hopping.store import HopObservation, cloud_of, load_observation
+from rvs_server.products.ply import read_ply
 from rvs_server.workflow import Operations, StepContext, StepParams
 from toolbox.hopping import (FlightFit, HopResult, IcpRound, LandingEllipse, LandingParams, LandingPlan, Launch,
                              NoGroundError, OverlapAlignment, Plane, TopDown, plan_landing)

@@ -20,7 +20,7 @@ import pytest
 from conftest import SMALL_WORLD, pairs
 from drivers.sim.config import WorldConfig
 from drivers.sim.world import World
-from rvs_server.hopping.store import read_ply
+from rvs_server.products.ply import read_ply
 from rvs_server.products.rasters import read_geotiff
 
 HOPPING = """sfm_threads = 1   # repeatable reconstructions: COLMAP's threads finish in varying order
