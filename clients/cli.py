@@ -28,7 +28,7 @@ from typing import Any, Callable
 from rvs_server.protocol import is_ignored
 
 from . import mission
-from .gnc import (DEFAULT_HOST, DEFAULT_PORT, Event, RvsClient, RvsClientError, RvsRequestError, ZmqClient)
+from .gnc import DEFAULT_HOST, DEFAULT_PORT, Event, RvsClient, RvsClientError, RvsRequestError, ZmqClient
 
 EXIT_OK, EXIT_FAILED, EXIT_NOT_STARTED = 0, 1, 2
 CLI_TIMEOUT = 600.0  # seconds of silence tolerated per command; PROGRESS restarts the count

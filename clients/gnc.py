@@ -35,8 +35,8 @@ from collections.abc import AsyncIterator, Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Any, Union
 
-from rvs_server.protocol import (Reply, build_line, format_err, format_event, format_ok, format_progress,
-                                 format_value, is_ignored, parse_reply, split_tag)
+from rvs_server.protocol import (Reply, build_line, format_err, format_event, format_ok, format_progress, format_value,
+                                 is_ignored, parse_reply, split_tag)
 
 log = logging.getLogger("rvs.client")
 

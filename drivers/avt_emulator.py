@@ -17,21 +17,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from drivers.avt import (
-    PIKE_F210B_SENSOR,
-    RESOLUTION_MODES,
-    Camera,
-    CameraSettings,
-    Frame,
-    intrinsics_per_mode,
-)
+from drivers.avt import PIKE_F210B_SENSOR, RESOLUTION_MODES, Camera, CameraSettings, Frame, intrinsics_per_mode
 from drivers.avt_sensor import _SceneAtPulse, expose_image
 from drivers.avt_stereo import StereoCameras
 from drivers.sim.clock import SimClock
 from drivers.sim.faults import FaultSwitch
-from toolbox.camera import Intrinsics
 from drivers.sim.world import World
 from drivers.trigger import EmulatedTrigger
+from toolbox.camera import Intrinsics
 
 READOUT_S = 1.0 / 31.0                 # the PIKE F-210B's frame time at full resolution
 EMULATED_RESET_S = 1.0                 # a reset re-enumerates the camera; it takes a moment

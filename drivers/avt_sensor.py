@@ -18,8 +18,8 @@ import numpy as np
 
 from drivers.avt import EXPOSURE_MAX_US, EXPOSURE_MIN_US, CameraSettings
 from drivers.sim.render import render
-from toolbox.camera import Intrinsics
 from drivers.sim.world import World
+from toolbox.camera import Intrinsics
 
 # Sensor model, after a Kodak KAI-2093-class interline CCD (the PIKE F-210B's): electrons per unit
 # of rendered radiance per microsecond of exposure (a mid-grey scene gives ~92 DN at 5 ms, 0 dB),

@@ -17,10 +17,9 @@ import threading
 from dataclasses import dataclass, replace
 
 from drivers.ptu import ARCSEC_PER_DEGREE
-from drivers.ptu_motion import Trajectory, _Segment, _braking_distance, plan_move, stop_at_hard_stops
+from drivers.ptu_motion import Trajectory, _braking_distance, _Segment, plan_move, stop_at_hard_stops
 from drivers.serial_emulation import PtyServer, TcpServer
 from drivers.sim.faults import FaultSwitch
-
 
 # A PTU-D46-17 as its manual describes it.
 D46_RESOLUTION_ARCSEC = 185.1428

@@ -42,25 +42,11 @@ from pydantic import BaseModel, ConfigDict, Field
 from drivers.sim.clock import SimClock
 from drivers.sim.faults import FaultSwitch
 from drivers.sim.render import RenderedView, render
-from toolbox.camera import Intrinsics
 from drivers.sim.world import World
-from drivers.sr4000 import (
-    AMPLITUDE_SATURATED,
-    AUTO_EXPOSURE_OFF,
-    CODE_FULL_SCALE,
-    CONFIDENCE_FULL,
-    AcquireMode,
-    ModulationFrequency,
-    Sr4000,
-    Sr4000Error,
-    Sr4000NotAnswering,
-    Sr4000NotFound,
-    Sr4000Settings,
-    Sr4000Timeout,
-    TofFrame,
-    integration_register,
-    integration_time_ms,
-)
+from drivers.sr4000 import (AMPLITUDE_SATURATED, AUTO_EXPOSURE_OFF, CODE_FULL_SCALE, CONFIDENCE_FULL, AcquireMode,
+                            ModulationFrequency, Sr4000, Sr4000Error, Sr4000NotAnswering, Sr4000NotFound,
+                            Sr4000Settings, Sr4000Timeout, TofFrame, integration_register, integration_time_ms)
+from toolbox.camera import Intrinsics
 
 # Published calibrations (see the SR4000 reference): MRPT's, and the ROS driver's fallback.
 MRPT_INTRINSICS = Intrinsics(width=176, height=144, fx=262.92, fy=262.92, cx=88.0, cy=69.0,

@@ -26,15 +26,15 @@ from pydantic import Field, ValidationError
 
 from drivers.sim.clock import SimClock
 from drivers.sim.config import WorldConfig
+from rvs_server.devices.calibration import Calibration, CalibrationConfig, build_calibration
+from rvs_server.products.manifests import Products
 
 from . import __version__
-from rvs_server.devices.calibration import Calibration, CalibrationConfig, build_calibration
 from .config import ConfigError, Settings, load_model, read_toml, validate_section
 from .devices import Devices, DevicesConfig
 from .dispatch import CommandSpec, Dispatcher, Module, Registry, Session
 from .files import remove_stale_temporaries
 from .jobs import JobCounter, RecoveryStore
-from rvs_server.products.manifests import Products
 from .protocol import BadRequest
 from .transports.tcp import claim_tcp_port, start_tcp
 from .transports.zmq import ZmqTransport

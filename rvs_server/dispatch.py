@@ -25,8 +25,8 @@ from drivers.errors import DeviceFault, DeviceTimeout
 from .config import CommandConfig, Settings, bind_tokens, build_config, option_name, type_label
 from .host import ModuleScope
 from .jobs import Job, JobContext, JobInterrupted, RecoverySet
-from .protocol import (Busy, CommandLine, DeviceError, InternalError, Interrupted, RvsError,
-                       Sleeping, Timeout, Unauthorized, UnknownCommand, WrongMode)
+from .protocol import (Busy, CommandLine, DeviceError, InternalError, Interrupted, RvsError, Sleeping, Timeout,
+                       Unauthorized, UnknownCommand, WrongMode)
 
 if TYPE_CHECKING:
     from .host import Host

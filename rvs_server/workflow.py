@@ -38,9 +38,10 @@ import numpy as np
 import yaml
 from pydantic import BaseModel, ConfigDict, ValidationError
 
+from toolbox.grid import GridSpec
+
 from .config import describe_validation_error
 from .files import save_npz_atomic, write_text_atomic
-from toolbox.grid import GridSpec
 
 if TYPE_CHECKING:
     from rvs_server.jobs import JobContext

@@ -19,8 +19,8 @@ from pydantic import BaseModel, ConfigDict, Field
 from drivers.avt import CameraSettings
 from drivers.avt_sensor import auto_exposure_us, sensor_image
 from drivers.sim.render import render
-from toolbox.camera import Intrinsics
 from drivers.sim.rover import Rover
+from toolbox.camera import Intrinsics
 from toolbox.geometry import CAMERA_AXES_IN_HEAD, rotation_y
 
 

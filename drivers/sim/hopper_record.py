@@ -14,8 +14,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .hopper_config import HopperConfig
 from toolbox.camera import Intrinsics
+
+from .hopper_config import HopperConfig
 
 FILE_FORMAT = "rvs-sim-hop/1"
 FRAMES_FILE, TRUTH_FILE = "frames.npz", "hop.json"

@@ -15,10 +15,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from toolbox.camera import Intrinsics
+
 from .config import Sun
 from .lighting import shade
 from .render import RenderedView, render
-from toolbox.camera import Intrinsics
 from .rover import Rover
 from .world import World, WorldConfig
 

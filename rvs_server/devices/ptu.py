@@ -12,7 +12,6 @@ from drivers.sim.clock import SimClock
 from ..config import Settings
 from .base import Device, log
 
-
 SIM_REPLY_TIMEOUT_S = 10.0
 POLL_MISSES_FOR_FAULT = 3
 

@@ -27,9 +27,9 @@ import numpy as np
 
 from drivers.sim.forward_camera import ForwardCamera, ForwardCameraConfig
 from drivers.sim.motion import dead_reckon, turn_and_distance
+from toolbox.geometry import RoverPose
 
 from ..protocol import BadRequest, DeviceError, Timeout
-from toolbox.geometry import RoverPose
 
 if TYPE_CHECKING:
     from drivers.sim.testbed import SimulatedTestbed

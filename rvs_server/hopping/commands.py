@@ -27,20 +27,20 @@ import numpy as np
 from pydantic import Field
 
 from rvs_server.config import CommandConfig, Point
-from rvs_server.host import Host
 from rvs_server.devices import Hopper, HopperDevice, OffTerrain
 from rvs_server.dispatch import Module
+from rvs_server.hopping.pictures import contact_sheet, global_maps
+from rvs_server.hopping.plan import check_workflow, run_hop_plan
 from rvs_server.hopping.settings import HoppingSettings
+from rvs_server.hopping.store import cloud_of, next_hop_number, write_hop
+from rvs_server.host import Host
 from rvs_server.jobs import JobContext
-from rvs_server.protocol import BadRequest, WrongMode
+from rvs_server.products.ply import read_ply, write_ply
 from rvs_server.products.rasters import write_geotiff, write_png
+from rvs_server.protocol import BadRequest, WrongMode
 from toolbox.colour import with_title
 from toolbox.geometry import rotation_z
 from toolbox.hopping import hop_range
-from rvs_server.hopping.pictures import contact_sheet, global_maps
-from rvs_server.hopping.plan import check_workflow, run_hop_plan
-from rvs_server.hopping.store import cloud_of, next_hop_number, write_hop
-from rvs_server.products.ply import read_ply, write_ply
 
 module = Module("hopping", settings=HoppingSettings, summary="the hopping rover: hop, hop-plan, hop-map",
                 state=lambda server: HoppingState())

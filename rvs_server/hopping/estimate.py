@@ -24,11 +24,10 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from rvs_server.hopping.sfm import HopReconstruction
-from toolbox.geometry import apply, compose, rigid, rotation_z
-from toolbox.mapping.height_match import match_height_maps
-from toolbox.hopping import (HopResult, align_with_overlap_elimination, centre_of_mass_positions, fit_flight,
-                                process_hop)
 from rvs_server.hopping.store import HopObservation
+from toolbox.geometry import apply, compose, rigid, rotation_z
+from toolbox.hopping import HopResult, align_with_overlap_elimination, centre_of_mass_positions, fit_flight, process_hop
+from toolbox.mapping.height_match import match_height_maps
 
 TOUCHDOWN_SEARCH_RADIUS_M = 0.25  # cloud points this close to the last frame's position give the ground height
 

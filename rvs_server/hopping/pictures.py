@@ -13,12 +13,12 @@ import math
 import cv2
 import numpy as np
 
+from rvs_server.hopping.estimate import HopEstimate, flight_positions
+from rvs_server.products.canvas import sheet
 from toolbox.colour import NO_DATA_RGB, colourise, upscale, with_colour_bar, with_key, with_title
 from toolbox.geometry import apply, invert
 from toolbox.grid import GridSpec
 from toolbox.hopping import LandingPlan, top_down_maps
-from rvs_server.products.canvas import sheet
-from rvs_server.hopping.estimate import HopEstimate, flight_positions
 
 HOP_COLOURS = [(230, 25, 75), (60, 180, 75), (255, 225, 25), (0, 130, 200), (245, 130, 48), (145, 30, 180),
                (70, 240, 240), (240, 50, 230), (210, 245, 60), (250, 190, 212)]

@@ -26,19 +26,19 @@ from pydantic import BaseModel, ConfigDict, Field
 from rvs_server.config import Point
 from rvs_server.devices import HopperTruth
 from rvs_server.files import atomic_file
-from rvs_server.hopping.sfm import timed
-from rvs_server.jobs import JobContext
-from rvs_server.protocol import BadRequest, RvsError
-from rvs_server.products.rasters import write_geotiff, write_png
-from rvs_server.workflow import Workflow, WorkflowError, load_workflow, resolve_params, run_workflow
-from toolbox.geometry import apply
-from toolbox.hopping import LandingPlan
 from rvs_server.hopping.estimate import HopEstimate
 from rvs_server.hopping.pictures import plan_pictures, trajectory_picture, truth_target_picture
 from rvs_server.hopping.settings import HoppingSettings
+from rvs_server.hopping.sfm import timed
 from rvs_server.hopping.steps import LandingStepParams, Refused, operations
 from rvs_server.hopping.store import HopObservation, load_observation, load_truth, save_reconstruction
+from rvs_server.jobs import JobContext
 from rvs_server.products.ply import write_ply
+from rvs_server.products.rasters import write_geotiff, write_png
+from rvs_server.protocol import BadRequest, RvsError
+from rvs_server.workflow import Workflow, WorkflowError, load_workflow, resolve_params, run_workflow
+from toolbox.geometry import apply
+from toolbox.hopping import LandingPlan
 
 if TYPE_CHECKING:
     from rvs_server.host import Host

@@ -20,14 +20,14 @@ from rvs_server.dispatch import Module
 from rvs_server.files import atomic_file
 from rvs_server.jobs import JobContext
 from rvs_server.mapping.steps import operations
-from rvs_server.protocol import BadRequest
 from rvs_server.products.canvas import side_by_side
 from rvs_server.products.ply import write_ply
 from rvs_server.products.rasters import write_geotiff, write_png
+from rvs_server.protocol import BadRequest
+from rvs_server.workflow import WorkflowError, load_workflow, resolve_params, run_workflow
 from toolbox.colour import categorical, colourise, upscale, with_colour_bar, with_key, with_title
 from toolbox.grid import GridSpec
 from toolbox.mapping.hazard import HAZARD, ROUGHNESS, SLOPE, STEP, UNKNOWN
-from rvs_server.workflow import WorkflowError, load_workflow, resolve_params, run_workflow
 
 if TYPE_CHECKING:
     from rvs_server.host import Host

@@ -14,15 +14,15 @@ import numpy as np
 from pydantic import Field
 
 from rvs_server.config import Range
-from toolbox.mapping import dem as dem_tools
-from toolbox.mapping import hazard as hazard_tools
+from rvs_server.workflow import Operations, StepContext, StepParams
 from toolbox.camera import Intrinsics
 from toolbox.geometry import RoverPose, camera_to_world, footprint_polygon, relative_pose
+from toolbox.mapping import dem as dem_tools
+from toolbox.mapping import hazard as hazard_tools
 from toolbox.mapping.localisation import AlignConfig, align_to_map, apply
 from toolbox.mapping.ortho import merge_views, ortho_image
 from toolbox.mapping.stereo import SgbmConfig, StereoCalibration, rectification, stereo_points
 from toolbox.mapping.views import plan_views
-from rvs_server.workflow import Operations, StepContext, StepParams
 
 if TYPE_CHECKING:
     from rvs_server.host import Host

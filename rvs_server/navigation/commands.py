@@ -23,16 +23,16 @@ from rvs_server.devices import DriveError
 from rvs_server.dispatch import Call, Module
 from rvs_server.files import atomic_file
 from rvs_server.jobs import JobContext
-from rvs_server.protocol import BadRequest, WrongMode
+from rvs_server.products.canvas import Canvas
 from rvs_server.products.rasters import read_geotiff, write_geotiff, write_png
+from rvs_server.protocol import BadRequest, WrongMode
 from toolbox.colour import colourise, with_colour_bar, with_title
 from toolbox.geometry import RoverPose
 from toolbox.grid import GridSpec
 from toolbox.mapping.hazard import HAZARD, UNKNOWN
 from toolbox.planning import (MapLayers, PlanningParams, blank_map_spanning, cells_to_world, distance_to_border,
-                                drivable_prefix, enclosed_unknown, fuse_maps, inside_box, outside_box, plan_path,
-                                terrain_cost, with_hazards)
-from rvs_server.products.canvas import Canvas
+                              drivable_prefix, enclosed_unknown, fuse_maps, inside_box, outside_box, plan_path,
+                              terrain_cost, with_hazards)
 
 if TYPE_CHECKING:
     from rvs_server.host import Host

@@ -38,25 +38,24 @@ from rvs_server.config import CommandConfig, Point, SafeName
 from rvs_server.devices.rover import Moved, Pace, WorldEdge, dead_reckon
 from rvs_server.files import atomic_file, save_npy_atomic
 from rvs_server.jobs import JobContext
-from rvs_server.products.manifests import ProductPart
-from rvs_server.protocol import BadRequest
-from rvs_server.products.rasters import read_geotiff
-from toolbox.geometry import RoverPose
-from toolbox.mapping.localisation import merge_clouds
-from toolbox.grid import GridSpec
-from toolbox.planning import (DrivablePrefix, MapLayers, PlanningParams, PlanResult, blank_map_spanning,
-                                drivable_prefix, fuse_nearest, holes_on_path, keep_route, nearest_open_cell,
-                                outside_box, plan_path, plan_through_unconfirmed, short_of_first_touch,
-                                with_hazards, with_unknown)
-from toolbox.planning.drive_error import cut_for_drive_error
-from toolbox.planning.paths import path_length
-from rvs_server.workflow import WorkflowError, resolve_params, run_workflow
 from rvs_server.mapping import (MappingSettings, WorkflowArgs, check_workflow, leave_camera_as_acquired, operations,
                                 write_maps)
+from rvs_server.navigation.commands import (NavigationSettings, check_reach, handout_border, hole_mask, look_distance,
+                                            module, operating_box, planning_layers, planning_params, under_rover,
+                                            unlooked_ground, within_area, write_plan)
 from rvs_server.navigation.pictures import write_traverse
-from rvs_server.navigation.commands import (NavigationSettings, check_reach, handout_border, hole_mask, look_distance, module,
-                         operating_box, planning_layers, planning_params, under_rover, unlooked_ground, within_area,
-                         write_plan)
+from rvs_server.products.manifests import ProductPart
+from rvs_server.products.rasters import read_geotiff
+from rvs_server.protocol import BadRequest
+from rvs_server.workflow import WorkflowError, resolve_params, run_workflow
+from toolbox.geometry import RoverPose
+from toolbox.grid import GridSpec
+from toolbox.mapping.localisation import merge_clouds
+from toolbox.planning import (DrivablePrefix, MapLayers, PlanningParams, PlanResult, blank_map_spanning,
+                              drivable_prefix, fuse_nearest, holes_on_path, keep_route, nearest_open_cell, outside_box,
+                              plan_path, plan_through_unconfirmed, short_of_first_touch, with_hazards, with_unknown)
+from toolbox.planning.drive_error import cut_for_drive_error
+from toolbox.planning.paths import path_length
 
 if TYPE_CHECKING:
     from rvs_server.host import Host

@@ -15,12 +15,12 @@ from typing import TYPE_CHECKING, Any
 import cv2
 import numpy as np
 
+from rvs_server.products.canvas import Canvas as GridCanvas
+from rvs_server.products.canvas import side_by_side
 from rvs_server.products.rasters import write_png
 from toolbox.colour import categorical, colourise, with_key, with_title
 from toolbox.grid import GridSpec
 from toolbox.planning import MapLayers
-from rvs_server.products.canvas import Canvas as GridCanvas
-from rvs_server.products.canvas import side_by_side
 
 if TYPE_CHECKING:
     from rvs_server.jobs import JobContext

@@ -26,18 +26,18 @@ from pydantic import Field, model_validator
 
 from rvs_server.config import CommandConfig, SafeName, Settings
 from rvs_server.devices import ForwardCameraConfig
-from rvs_server.host import Host
 from rvs_server.dispatch import Call, Module
+from rvs_server.host import Host
 from rvs_server.jobs import JobContext
-from rvs_server.protocol import BadRequest, WrongMode
 from rvs_server.products.canvas import sheet
 from rvs_server.products.rasters import write_png
+from rvs_server.protocol import BadRequest, WrongMode
+from rvs_server.routes.rover import RouteRover, check_rover
 from rvs_server.routes.store import Action, RouteStore, RouteStoreConfig, RouteStoreError
 from toolbox.colour import with_title
 from toolbox.routes.follow import FollowParams, FollowReport, Leg, RouteFollower
 from toolbox.routes.match import MATCHER_NAMES, rank_route
 from toolbox.routes.network import NetworkLeg, NetworkLink, Segment, shortest_way
-from rvs_server.routes.rover import RouteRover, check_rover
 
 Matcher = Literal["features", "contour"]
 

@@ -16,7 +16,7 @@ import zmq
 import zmq.asyncio
 
 from ..dispatch import Request, Session
-from ..protocol import BadRequest, RvsError, TAG_RE, parse_line
+from ..protocol import TAG_RE, BadRequest, RvsError, parse_line
 
 if TYPE_CHECKING:
     from rvs_server.host import Host

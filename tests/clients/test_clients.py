@@ -10,8 +10,8 @@ import asyncio
 import json
 import os
 import pty
-import select
 import queue
+import select
 import subprocess
 import sys
 import threading
@@ -21,8 +21,8 @@ from pathlib import Path
 import pytest
 
 from clients import gnc, mission
-from clients.gnc import (AsyncRvsClient, Event, Progress, Result, RvsBadRequest, RvsBusy, RvsClient,
-                         RvsConnectionError, RvsInterrupted, RvsRequestError, RvsUnknownCommand, ZmqClient)
+from clients.gnc import (AsyncRvsClient, Event, Progress, Result, RvsBadRequest, RvsBusy, RvsClient, RvsConnectionError,
+                         RvsInterrupted, RvsRequestError, RvsUnknownCommand, ZmqClient)
 from rvs_server.protocol import Reply
 
 REPO = Path(__file__).resolve().parents[2]

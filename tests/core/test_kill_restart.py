@@ -37,8 +37,9 @@ import numpy as np
 import pytest
 import tifffile
 
-from conftest import ServerProcess, pairs, write_configs
 from rvs_server.files import is_temporary
+
+from conftest import ServerProcess, pairs, write_configs
 
 SEED = 20261203
 MOMENTS = 6                     # per command

@@ -9,8 +9,9 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from conftest import ServerProcess, write_configs
 from rvs_server.protocol import MAX_LINE_BYTES, is_ignored, parse_reply
+
+from conftest import ServerProcess, write_configs
 
 
 @pytest.fixture(scope="module")

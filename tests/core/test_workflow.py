@@ -9,9 +9,9 @@ import pytest
 from pydantic import Field
 
 from rvs_server.config import CommandConfig, Settings
-from toolbox.grid import GridSpec
 from rvs_server.workflow import (Operations, StepParams, WorkflowError, load_result, load_step, load_workflow,
                                  resolve_params, run_workflow, save_result)
+from toolbox.grid import GridSpec
 
 ops = Operations()
 calls: list[str] = []

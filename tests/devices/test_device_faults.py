@@ -21,8 +21,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import REPO, ServerProcess, pairs, write_configs
 from rvs_server.products.rasters import read_png, read_tiff
+
+from conftest import REPO, ServerProcess, pairs, write_configs
 
 # The stereo traverse looks ahead only, so each cycle takes a few views (the repository's full
 # panoramas take 20 s a cycle). Both runs of a case use the same files.

@@ -21,7 +21,7 @@ import cv2
 import numpy as np
 import pytest
 
-from drivers.avt import (CameraError, CameraSettings, CameraTimeout, PIKE_F210B_SENSOR, SettingsError,
+from drivers.avt import (PIKE_F210B_SENSOR, CameraError, CameraSettings, CameraTimeout, SettingsError,
                          intrinsics_per_mode)
 from drivers.avt_emulator import EmulatedCamera, emulated_stereo_pair
 from drivers.avt_stereo import StereoCameras
@@ -31,11 +31,10 @@ from drivers.sim.clock import SimClock
 from drivers.sim.config import Sun
 from drivers.sim.faults import InjectedFaults
 from drivers.sim.render import render
-from toolbox.camera import Intrinsics
 from drivers.sim.rover import Rover
 from drivers.sim.world import World, WorldConfig
-from drivers.trigger import (PPCLAIM, PPDATADIR, PPEXCL, PPRELEASE, PPWDATA, EmulatedTrigger, PpdevTrigger,
-                             TriggerError)
+from drivers.trigger import PPCLAIM, PPDATADIR, PPEXCL, PPRELEASE, PPWDATA, EmulatedTrigger, PpdevTrigger, TriggerError
+from toolbox.camera import Intrinsics
 
 LOW = CameraSettings(resolution="low")
 TILT_DEG = -30.0     # the pair looks 30 degrees down from a ~1.5 m mast

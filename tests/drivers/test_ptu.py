@@ -15,15 +15,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from drivers.errors import DeviceFault, DeviceTimeout
-from drivers.ptu import (
-    PtuCommandError,
-    PtuD46,
-    PtuLimitHit,
-    PtuNotResponding,
-    PtuPositionError,
-    PtuSpeedError,
-    PtuTimeout,
-)
+from drivers.ptu import (PtuCommandError, PtuD46, PtuLimitHit, PtuNotResponding, PtuPositionError, PtuSpeedError,
+                         PtuTimeout)
 from drivers.ptu_emulator import D46_RESOLUTION_ARCSEC, PtuEmulator
 from drivers.ptu_motion import plan_move
 from drivers.serial_emulation import make_raw

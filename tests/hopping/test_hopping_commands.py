@@ -17,11 +17,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import SMALL_WORLD, pairs
 from drivers.sim.config import WorldConfig
 from drivers.sim.world import World
 from rvs_server.products.ply import read_ply
 from rvs_server.products.rasters import read_geotiff
+
+from conftest import SMALL_WORLD, pairs
 
 HOPPING = """sfm_threads = 1   # repeatable reconstructions: COLMAP's threads finish in varying order
 [hopper.camera]

@@ -6,8 +6,9 @@ import json
 import numpy as np
 import tifffile
 
-from conftest import pairs
 from rvs_server.products.rasters import read_png
+
+from conftest import pairs
 
 
 def test_grab_tof_writes_raw_values_a_picture_and_the_truth(server):
@@ -81,6 +82,7 @@ def test_a_missing_vendor_library_is_a_precise_503(server_factory, tmp_path):
 def test_a_saved_world_is_loaded_with_world_file(server_factory, tmp_path):
     import subprocess
     import sys
+
     from conftest import REPO, SMALL_WORLD
     (tmp_path / "w.toml").write_text(SMALL_WORLD.replace("seed = 3", "seed = 9"))
     saved = tmp_path / "scene.npz"

@@ -7,8 +7,9 @@ import time
 import numpy as np
 import pytest
 
-from conftest import pairs
 from rvs_server.products.rasters import read_geotiff, read_png
+
+from conftest import pairs
 
 # A quarter panorama keeps these tests quick; the full one runs the same code.
 ARC = "--pan -60:60 --output"

@@ -12,9 +12,10 @@ import numpy as np
 import pytest
 from scipy.ndimage import distance_transform_edt
 
-from conftest import SMALL_WORLD, pairs
 from drivers.sim.config import WorldConfig
 from drivers.sim.world import World
+
+from conftest import SMALL_WORLD, pairs
 
 CELL = 0.05
 

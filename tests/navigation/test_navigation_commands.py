@@ -7,8 +7,9 @@ import json
 import numpy as np
 from scipy.ndimage import distance_transform_edt
 
-from conftest import pairs
 from rvs_server.products.rasters import read_geotiff
+
+from conftest import pairs
 
 
 def clear_goal(product, max_y: float = np.inf) -> tuple[float, float]:

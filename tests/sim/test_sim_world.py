@@ -12,9 +12,9 @@ import pytest
 
 from drivers.sim.config import Sun, WorldConfig
 from drivers.sim.render import render
-from toolbox.camera import Intrinsics
 from drivers.sim.rover import Rover
 from drivers.sim.world import World
+from toolbox.camera import Intrinsics
 
 SMALL = WorldConfig(seed=3, size_m=(10.0, 10.0))
 SR4000 = Intrinsics(width=176, height=144, fx=262.92, fy=262.92, cx=88.0, cy=69.0, k1=-0.826, k2=0.656)

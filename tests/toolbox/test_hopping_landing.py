@@ -13,11 +13,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from toolbox.grid import GridSpec
-from toolbox.hopping.ballistics import (ballistic_positions, elevation_for_target, hop_range,
-                                                   landing_error_ellipse, launch_to_target, speed_for_target)
-from toolbox.hopping.landing import (LandingParams, NoGroundError, ellipse_safe_mask, ellipse_semi_axes,
-                                                goal_map, obstacle_mask, plan_landing, protrusion_map, swept_height,
-                                                top_down_maps, trajectory_collides)
+from toolbox.hopping.ballistics import (ballistic_positions, elevation_for_target, hop_range, landing_error_ellipse,
+                                        launch_to_target, speed_for_target)
+from toolbox.hopping.landing import (LandingParams, NoGroundError, ellipse_safe_mask, ellipse_semi_axes, goal_map,
+                                     obstacle_mask, plan_landing, protrusion_map, swept_height, top_down_maps,
+                                     trajectory_collides)
 from toolbox.hopping.plane import Plane
 
 G = 1.62

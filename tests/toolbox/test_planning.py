@@ -11,13 +11,11 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from toolbox.grid import GridSpec
-from toolbox.planning import (MapLayers, PlanningParams, apply_unknown_policy, astar,
-                                         blank_map_spanning, cells_to_world, dijkstra_reference,
-                                         distance_to_border, douglas_peucker, drivable_prefix, fuse_maps,
-                                         inflate_hazards, keep_route, path_cost, path_length, plan_path,
-                                         polyline_cost, proximity_cost,
-                                         resample_onto, segment_cells, segment_is_clear, simplify_path,
-                                         terrain_cost, world_to_cells)
+from toolbox.planning import (MapLayers, PlanningParams, apply_unknown_policy, astar, blank_map_spanning,
+                              cells_to_world, dijkstra_reference, distance_to_border, douglas_peucker, drivable_prefix,
+                              fuse_maps, inflate_hazards, keep_route, path_cost, path_length, plan_path, polyline_cost,
+                              proximity_cost, resample_onto, segment_cells, segment_is_clear, simplify_path,
+                              terrain_cost, world_to_cells)
 from toolbox.planning.search import ASTAR_SLACK
 
 SQRT2 = math.sqrt(2.0)

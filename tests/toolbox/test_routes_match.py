@@ -14,14 +14,12 @@ from hypothesis.extra.numpy import arrays
 from drivers.avt_sensor import sensor_image
 from drivers.sim.config import Sun, WorldConfig
 from drivers.sim.render import render
-from toolbox.camera import Intrinsics
 from drivers.sim.rover import Rover
 from drivers.sim.world import World
-from toolbox.routes.match import (ContourConfig, ContourMatcher, FeatureConfig,
-                                             FeatureMatcher, PlaceMatcher, bright_cells, cell_brightness,
-                                             cluster_contour, heading_offset, horizontal_runs, main_cluster,
-                                             make_matcher, merge_vertical_runs, rank_route)
-
+from toolbox.camera import Intrinsics
+from toolbox.routes.match import (ContourConfig, ContourMatcher, FeatureConfig, FeatureMatcher, PlaceMatcher,
+                                  bright_cells, cell_brightness, cluster_contour, heading_offset, horizontal_runs,
+                                  main_cluster, make_matcher, merge_vertical_runs, rank_route)
 
 # ============================================================================ synthetic images
 

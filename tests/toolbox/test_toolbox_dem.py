@@ -7,11 +7,11 @@ import numpy as np
 import open3d as o3d
 import pytest
 
-from toolbox.mapping import dem as D
-from toolbox.camera import Intrinsics
 from toolbox import geometry as g
-from toolbox.mapping import ortho as O
+from toolbox.camera import Intrinsics
 from toolbox.grid import GridSpec
+from toolbox.mapping import dem as D
+from toolbox.mapping import ortho as O
 
 SR4000 = Intrinsics.from_fov(176, 144, math.radians(43.6))
 

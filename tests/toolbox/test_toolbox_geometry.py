@@ -10,10 +10,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from drivers.sim.config import WorldConfig
-from toolbox.camera import Intrinsics, project
 from drivers.sim.rover import Rover
 from drivers.sim.world import World
 from toolbox import geometry as g
+from toolbox.camera import Intrinsics, project
 from toolbox.mapping import views as v
 
 SR4000_FOV = (math.radians(43.6), math.radians(34.6))

@@ -9,14 +9,14 @@ from scipy import ndimage
 
 from drivers.sim.config import WorldConfig
 from drivers.sim.render import render
-from toolbox.camera import Intrinsics
 from drivers.sim.rover import Rover
 from drivers.sim.world import World
-from toolbox.mapping import dem as D
 from toolbox import geometry as g
+from toolbox.camera import Intrinsics
+from toolbox.grid import GridSpec
+from toolbox.mapping import dem as D
 from toolbox.mapping import hazard as H
 from toolbox.mapping import views as V
-from toolbox.grid import GridSpec
 
 CELL = 0.02
 

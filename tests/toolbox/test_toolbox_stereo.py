@@ -9,13 +9,13 @@ import pytest
 
 from drivers.sim.config import WorldConfig
 from drivers.sim.render import render
-from toolbox.camera import Intrinsics, project
 from drivers.sim.rover import Rover
 from drivers.sim.world import World
-from toolbox.mapping import dem as D
 from toolbox import geometry as g
-from toolbox.mapping import stereo as S
+from toolbox.camera import Intrinsics, project
 from toolbox.grid import GridSpec
+from toolbox.mapping import dem as D
+from toolbox.mapping import stereo as S
 
 WIDTH, HEIGHT = 320, 240
 IDEAL = Intrinsics.from_fov(WIDTH, HEIGHT, math.radians(60))

@@ -38,8 +38,8 @@ from scipy.ndimage import binary_erosion, distance_transform_edt
 from scipy.spatial import cKDTree
 
 from toolbox.grid import GridSpec
-from toolbox.hopping.ballistics import CHI2_2D_95, Launch, LandingEllipse, ballistic_positions, landing_error_ellipse, \
-    launch_to_target, speed_for_target
+from toolbox.hopping.ballistics import (CHI2_2D_95, LandingEllipse, Launch, ballistic_positions, landing_error_ellipse,
+                                        launch_to_target, speed_for_target)
 from toolbox.hopping.parabola import MOON_GRAVITY
 from toolbox.hopping.plane import Plane, ransac_plane
 

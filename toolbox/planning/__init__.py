@@ -22,13 +22,13 @@ from scipy.ndimage import label
 
 from toolbox.grid import GridSpec
 from toolbox.planning.costs import (UNKNOWN_POLICIES, InflatedHazards, UnknownPolicy, apply_unknown_policy,
-                             inflate_hazards, proximity_cost, terrain_cost)
+                                    inflate_hazards, proximity_cost, terrain_cost)
 from toolbox.planning.fusion import (FusedLayers, MapLayers, blank_map, blank_map_spanning, enclosed_unknown, fuse_maps,
-                              fuse_nearest, holes_on_path, inside_box, outside_box, resample_onto, with_hazards,
-                              with_unknown)
+                                     fuse_nearest, holes_on_path, inside_box, outside_box, resample_onto, with_hazards,
+                                     with_unknown)
 from toolbox.planning.paths import (DrivablePrefix, cells_to_world, distance_to_border, douglas_peucker,
-                             drivable_prefix, first_touch, path_length, segment_cells, segment_is_clear,
-                             short_of_first_touch, simplify_path, world_to_cells, world_to_grid)
+                                    drivable_prefix, first_touch, path_length, segment_cells, segment_is_clear,
+                                    short_of_first_touch, simplify_path, world_to_cells, world_to_grid)
 from toolbox.planning.search import SearchResult, astar, cost_per_metre, dijkstra_reference, path_cost
 
 __all__ = [
