@@ -18,18 +18,15 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from enum import StrEnum
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Awaitable, Callable, Literal, Mapping, Protocol
+from typing import Any, Awaitable, Callable, Literal, Mapping, Protocol
 
 from drivers.errors import DeviceFault, DeviceTimeout
 
 from .config import CommandConfig, Settings, bind_tokens, build_config, option_name, type_label
-from .host import ModuleScope
+from .host import Host, ModuleScope
 from .jobs import Job, JobContext, JobInterrupted, RecoverySet
 from .protocol import (Busy, CommandLine, DeviceError, InternalError, Interrupted, RvsError, Sleeping, Timeout,
                        Unauthorized, UnknownCommand, WrongMode)
-
-if TYPE_CHECKING:
-    from .host import Host
 
 log = logging.getLogger("rvs.dispatch")
 
@@ -72,8 +69,8 @@ class CommandSpec:
     positionals: tuple[str, ...] = ()
     raw: bool = False  # the handler gets the tokens unparsed (check, help)
     devices: tuple[str, ...] = ()  # what `continue` checks before resuming
-    validate: Callable[["Host", Any], None] | None = None  # (server, cfg) -> None, raises RvsError
-    limits: Callable[["Host"], dict[str, str]] | None = None  # (server) -> what help adds from devices
+    validate: Callable[[Host, Any], None] | None = None  # (server, cfg) -> None, raises RvsError
+    limits: Callable[[Host], dict[str, str]] | None = None  # (server) -> what help adds from devices
     resumable: bool = True
     open_without_auth: bool = False
     module: "Module | None" = None
@@ -101,7 +98,7 @@ class Module:
     """
 
     def __init__(self, name: str, settings: type[Settings] | None = None, summary: str = "",
-                 state: Callable[["Host"], Any] | None = None):
+                 state: Callable[[Host], Any] | None = None):
         self.name = name
         self.settings = settings
         self.summary = summary
@@ -183,7 +180,7 @@ class Session:
 class Call(ModuleScope):
     """What an immediate or control handler gets besides its options."""
 
-    server: "Host"
+    server: Host
     session: Session
     request: Request
     sink: ReplySink
@@ -195,7 +192,7 @@ class Call(ModuleScope):
 
 
 class Dispatcher:
-    def __init__(self, server: "Host"):
+    def __init__(self, server: Host):
         self.server = server
         self._base_mode = Mode.STANDBY  # standby | break; busy and sleep are derived
         self.sleep_until: float | None = None

@@ -21,14 +21,12 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable
 
 from .files import write_json_atomic, write_text_atomic
-from .host import ModuleScope
+from .host import Host, ModuleScope
 
 if TYPE_CHECKING:
     from drivers.sim.clock import SimClock
 
     from .devices import Devices
-    from .host import Host
-
 
 log = logging.getLogger("rvs.jobs")
 
@@ -220,7 +218,7 @@ class JobContext(ModuleScope):
     """What a job handler sees: its settings and state, progress, checkpoints, safe points, devices,
     clock, data directory. Built from named fields (dispatch.Dispatcher.start_job)."""
 
-    def __init__(self, *, job: Job, server: "Host", module: str | None = None,
+    def __init__(self, *, job: Job, server: Host, module: str | None = None,
                  recovery_set: RecoverySet | None = None, store: RecoveryStore | None = None,
                  resume: dict[str, Any] | None = None,
                  on_progress: Callable[[float, str], None] = lambda percent, message: None):

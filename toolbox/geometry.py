@@ -1,4 +1,5 @@
-"""Every transform of RVS: rigid 4x4 poses, rotations, the sensor chain and the pinhole projection.
+"""Every transform of RVS: rigid 4x4 poses, rotations and the sensor chain (the pinhole projection is
+toolbox/camera.py's).
 
 Frames (metres, radians; DESIGN.md "Frames and units"):
 - world: x east, y north, z up.

@@ -69,7 +69,7 @@ from rvs_server.hopping.settings import Mapper
 from toolbox.camera import Intrinsics
 from toolbox.mapping.stereo import Rectification, SgbmConfig, stereo_points
 
-__all__ = ["SfmConfig", "HopReconstruction", "reconstruct_hop", "as_intrinsics", "colmap_camera",
+__all__ = ["SfmConfig", "HopReconstruction", "reconstruct_hop", "colmap_camera",
            "Mapper", "MAPPERS", "DenseConfig", "StereoPair", "densify", "scene_depths", "choose_pairs",
            "pair_rectification", "consistent_points", "voxel_average", "similarity_umeyama"]
 
@@ -135,15 +135,6 @@ class HopReconstruction:
         return poses
 
 
-def as_intrinsics(camera) -> Intrinsics:
-    """geometry.Intrinsics from anything with width, height, fx, fy, cx, cy (k1, k2 optional), such as the
-    simulator's PinholeCamera; OpenCV's pixel convention (centres at integer coordinates)."""
-    if isinstance(camera, Intrinsics):
-        return camera
-    return Intrinsics(int(camera.width), int(camera.height), float(camera.fx), float(camera.fy), float(camera.cx),
-                      float(camera.cy), float(getattr(camera, "k1", 0.0)), float(getattr(camera, "k2", 0.0)))
-
-
 def colmap_camera(intrinsics: Intrinsics) -> tuple[str, list[float]]:
     """The COLMAP camera model and parameters for our intrinsics: the simplest model that is exact."""
     i = intrinsics
@@ -156,11 +147,11 @@ def colmap_camera(intrinsics: Intrinsics) -> tuple[str, list[float]]:
     return "OPENCV", [i.fx, i.fy, cx, cy, i.k1, i.k2, 0.0, 0.0]
 
 
-def reconstruct_hop(frames: np.ndarray, timestamps: np.ndarray, intrinsics, workdir: str | Path,
+def reconstruct_hop(frames: np.ndarray, timestamps: np.ndarray, intrinsics: Intrinsics, workdir: str | Path,
                     config: SfmConfig = SfmConfig()) -> HopReconstruction:
     """COLMAP on one hop's frames (N, h, w) or (N, h, w, 3) uint8, in time order, with the camera's
     intrinsics known and held fixed. workdir receives the images, COLMAP's database and model."""
-    frames, timestamps, intrinsics = _check_sfm_input(frames, timestamps, as_intrinsics(intrinsics))
+    frames, timestamps, intrinsics = _check_sfm_input(frames, timestamps, intrinsics)
     timings: dict[str, float] = {}
     # Frames to files named by index, so COLMAP's order (by name) is the flight's.
     with timed(timings, "write"):
@@ -386,11 +377,10 @@ class StereoPair:
     rectification: Rectification  # stereo.py's: maps, projections, reprojection
 
 
-def densify(frames: np.ndarray, reconstruction: HopReconstruction, intrinsics,
+def densify(frames: np.ndarray, reconstruction: HopReconstruction, intrinsics: Intrinsics,
             config: DenseConfig = DenseConfig()) -> tuple[np.ndarray, np.ndarray]:
     """Dense points (M, 3) in the SfM frame and their colours (M, 3) uint8 from rectified pairs of
     registered frames (see the module docstring)."""
-    intrinsics = as_intrinsics(intrinsics)
     frames = np.asarray(frames)
     # Scene depth per frame from the sparse points: it sets the baselines and disparity ranges.
     depths = scene_depths(reconstruction, intrinsics)

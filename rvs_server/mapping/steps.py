@@ -119,7 +119,7 @@ def acquire_tof(step: StepContext, params: AcquireTofParams, views: dict) -> dic
     job = step.job
     camera = job.devices.tof.require()
     mount = job.server.calibration().mounts["tof"]
-    pose = job.server.devices.rover.pose_estimate
+    pose = job.devices.rover.pose_estimate
 
     def take(index: int, measured: tuple[float, float]) -> dict:
         _repeatable(camera, index, step.load_partial(f"exposure{index - 1:03d}"))
@@ -166,7 +166,7 @@ def acquire_stereo(step: StepContext, params: StepParams, views: dict) -> dict[s
     job = step.job
     pair = job.devices.cameras.require()
     mounts = job.server.calibration().mounts
-    pose = job.server.devices.rover.pose_estimate
+    pose = job.devices.rover.pose_estimate
     timeout = job.devices.cameras.grab_timeout_s
 
     def take(index: int, measured: tuple[float, float]) -> dict:
@@ -243,7 +243,7 @@ class RemoveBodyParams(StepParams):
 def remove_body(step: StepContext, params: RemoveBodyParams, points: dict) -> dict[str, Any]:
     """Points on the rover's own body (its footprint, grown by a margin) are not terrain."""
     calibration = step.job.server.calibration()
-    footprint = footprint_polygon(step.job.server.devices.rover.pose_estimate, calibration.rover_length_m,
+    footprint = footprint_polygon(step.job.devices.rover.pose_estimate, calibration.rover_length_m,
                                   calibration.rover_width_m)
     kept = dem_tools.remove_rover_body(points["points"], footprint, params.margin_m)
     return {"points": kept, "removed": int(len(points["points"]) - len(kept)), "footprint": footprint}
@@ -260,7 +260,7 @@ class AlignParams(StepParams):
 def localise(step: StepContext, params: AlignParams, points: dict) -> dict[str, Any]:
     """Align the new points to the map's cloud (4-DOF ICP about the rover) and correct them; the
     correction is the odometry pose's error, which the caller applies to the rover's pose."""
-    pose = step.job.server.devices.rover.pose_estimate
+    pose = step.job.devices.rover.pose_estimate
     if not params.reference:
         alignment = None
         reason = "no map to align to yet"
@@ -286,7 +286,7 @@ class GridParams(StepParams):
 def grid(step: StepContext, params: GridParams, points: dict) -> dict[str, Any]:
     """Direct reconstruction: every point to its cell, the highest wins; no data stays NaN."""
     cloud = points["points"]
-    pose = step.job.server.devices.rover.pose_estimate
+    pose = step.job.devices.rover.pose_estimate
     near = np.all(np.abs(cloud[:, :2] - [pose.x, pose.y]) <= params.max_extent_m, axis=1)
     cloud = cloud[near]
     if len(cloud) == 0:

@@ -65,7 +65,7 @@ def test_sfm_registers_the_hop_and_finds_its_trajectory(hop, sfm, to_world):
     assert sfm.camera_centres.shape == (len(hop.frames), 3)
     assert np.isnan(sfm.camera_centres[~sfm.registered]).all()
     # The calibration went in with COLMAP's half-pixel shift and came out untouched.
-    _, params = hop_sfm.colmap_camera(hop_sfm.as_intrinsics(hop.camera))
+    _, params = hop_sfm.colmap_camera(hop.camera)
     assert np.allclose(sfm.camera_params, params)
     assert sfm.reprojection_error < 0.7 and len(sfm.points) > 500
     # Centres after the similarity: within 2 % of the hop's range (measured: about 0.05 %).
