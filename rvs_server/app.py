@@ -30,6 +30,7 @@ from rvs_server.devices.calibration import Calibration, CalibrationConfig, build
 from rvs_server.products.manifests import Products
 
 from . import __version__
+from .activities import Activities
 from .config import ConfigError, Settings, load_model, read_toml, validate_section
 from .devices import Devices, DevicesConfig
 from .dispatch import CommandSpec, Dispatcher, Module, Registry, Session
@@ -88,9 +89,9 @@ def read_configuration(config_dir: Path, overrides: Mapping[str, Any], modules: 
 
 
 def all_modules() -> list[Module]:
-    from rvs_server import hopping, imaging, mapping, navigation, ptu, routes, simulation, system
+    from rvs_server import hazard, hopping, imaging, mapping, navigation, ptu, routes, simulation, system
     return [system.module, ptu.module, imaging.module, mapping.module, navigation.module, hopping.module,
-            routes.module, simulation.module]
+            routes.module, hazard.module, simulation.module]
 
 
 class ModuleConfig:
@@ -185,6 +186,7 @@ class Server:
         self.job_counter = JobCounter(self.data_dir / "jobs.counter")
         self.sessions: set[Session] = set()
         self.dispatcher = Dispatcher(self)
+        self.activities = Activities()  # background loops beside the job (activities.py)
         self.devices = Devices(self.devices_config, self.clock, self.world_config, self.world_file)
         self.zmq: ZmqTransport | None = None
         self.started = time.monotonic()
@@ -247,7 +249,7 @@ class Server:
         old.close_all()
         same_world = old.testbed.world_config == self.world_config and old.testbed.world_file == self.world_file
         self.devices = Devices(self.devices_config, self.clock, self.world_config, self.world_file,
-                               testbed=old.testbed if same_world else None)
+                               testbed=old.testbed if same_world else None, sharing=old.sharing)
         self.devices.rover.take_over(old.rover)   # the rover has not moved: its estimate stays
         self.devices.hopper.take_over(old.hopper)   # on the same world the hopper stays where it landed
         self.devices.open_all()
@@ -359,6 +361,7 @@ class Server:
     async def _stop(self, reason: str) -> dict[str, Any]:
         job = self.dispatcher.job
         try:
+            await self.activities.stop_all()   # they borrow devices that are about to close
             if job is not None:
                 job.request_interrupt(reason)
                 await self.dispatcher.wait_job(job, self.settings.quit_timeout_s)

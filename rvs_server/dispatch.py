@@ -440,7 +440,8 @@ def _run_handler(spec: CommandSpec, ctx: JobContext, cfg: Any) -> Any:
         if not devices.testbed.ready:
             ctx.progress(0.0, "waiting for the simulated world to be built")
         devices.testbed.wait_for_build()
-    return spec.handler(ctx, cfg)
+    with devices.sharing.job_running():   # what the job takes it holds until it ends (devices/sharing.py)
+        return spec.handler(ctx, cfg)
 
 
 def _missing_data_file(exc: Exception, data_dir: Path) -> str | None:

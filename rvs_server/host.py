@@ -13,6 +13,7 @@ if TYPE_CHECKING:
     import logging
 
     from drivers.sim.clock import SimClock
+    from rvs_server.activities import Activities
     from rvs_server.config import Settings
     from rvs_server.devices import Devices
     from rvs_server.devices.calibration import Calibration
@@ -38,6 +39,8 @@ class Host(Protocol):
     recovery: "RecoveryStore"
     products: "Products"
     dispatcher: "Dispatcher"
+    activities: "Activities"
+    stopping: bool                   # a shutdown was asked for
     registry: "Registry"
 
     def settings_of(self, module: str) -> Any:

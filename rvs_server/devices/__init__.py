@@ -26,6 +26,7 @@ from .cameras import CamerasDeviceConfig, StereoDevice
 from .hopper import Hopper, HopperBackend, HopperConfig, HopperDevice, HopperTruth, OffTerrain
 from .ptu import PtuDevice, PtuDeviceConfig
 from .rover import ForwardCameraConfig, RoverDevice
+from .sharing import DeviceSharing
 from .tof import TofDevice, TofDeviceConfig
 from .truth import GroundTruth
 
@@ -40,7 +41,8 @@ class Devices:
     """Every device by name, in the order they were configured."""
 
     def __init__(self, config: DevicesConfig, clock: SimClock, world_config: WorldConfig | None = None,
-                 world_file: Path | None = None, testbed: SimulatedTestbed | None = None):
+                 world_file: Path | None = None, testbed: SimulatedTestbed | None = None,
+                 sharing: DeviceSharing | None = None):
         self.config = config
         self.clock = clock
         if testbed is None:
@@ -54,7 +56,12 @@ class Devices:
             "tof": TofDevice(config.tof, clock, self.testbed),
             "cameras": StereoDevice(config.cameras, clock, self.testbed),
         }
-        self.rover = RoverDevice(self.testbed, lambda: self.simulated)  # not an item: see devices/rover.py
+        # A job's and the activities' turns at the devices (sharing.py); reinit passes it on, since
+        # the job that reinitialises holds devices and activities keep running.
+        self.sharing = sharing or DeviceSharing()
+        for device in self.items.values():
+            device.sharing = self.sharing
+        self.rover = RoverDevice(self.testbed, lambda: self.simulated, self.sharing)  # not an item: see rover.py
         self.hopper = HopperDevice(self.testbed)  # not an item: see devices/hopper.py
 
     def __getitem__(self, name: str) -> Device:

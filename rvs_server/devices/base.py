@@ -8,6 +8,7 @@ from typing import Any, Literal
 from drivers.errors import DeviceFault
 
 from ..protocol import DeviceError
+from .sharing import DeviceSharing
 
 log = logging.getLogger("rvs.devices")
 
@@ -22,6 +23,7 @@ class Device:
     def __init__(self) -> None:
         self.health: Health = "off"
         self.last_error = ""
+        self.sharing: DeviceSharing | None = None  # set by Devices: who may use it (devices/sharing.py)
 
     def _fault(self, exc: BaseException) -> None:
         self.health = "fault"
@@ -41,7 +43,16 @@ class Device:
             raise DeviceError(f"{self.name} is {self.health}{detail}")
 
     def require(self) -> Any:
-        """The driver, or ERR 503 naming the device and its last error."""
+        """The driver, or ERR 503 naming the device and its last error. Called in a job's thread,
+        the job holds the device from now on (devices/sharing.py)."""
+        self.require_healthy()
+        if self.sharing is not None:
+            self.sharing.job_uses(self.name)
+        return self.ready_driver()
+
+    def ready_driver(self) -> Any:
+        """The driver of a healthy device, without taking it for a job: what an activity uses inside
+        a borrow (DeviceSharing.borrow)."""
         self.require_healthy()
         return self.driver  # type: ignore[attr-defined]
 
@@ -86,7 +97,7 @@ class SensorDevice(Device):
         except (DeviceFault, OSError, ValueError) as exc:
             self._fault(exc)
 
-    def require(self) -> Any:
+    def ready_driver(self) -> Any:
         self.require_healthy()
         with self._lock:
             if self.driver is None:

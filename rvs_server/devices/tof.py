@@ -61,10 +61,12 @@ class TofDevice(SensorDevice):
         else:
             self.health, self.last_error = "ok", ""
 
-    def grab(self, frames: int = 1, min_confidence: int = 0, settle_frames: int = 10) -> Any:
-        """Frames averaged per pixel once auto exposure settled (drivers.sr4000.grab's GrabResult)."""
+    def grab(self, frames: int = 1, min_confidence: int = 0, settle_frames: int = 10, camera: Any = None) -> Any:
+        """Frames averaged per pixel once auto exposure settled (drivers.sr4000.grab's GrabResult);
+        from `camera` when an activity borrowed it, else from the job's."""
         from drivers.sr4000 import grab
-        return grab(self.require(), frames=frames, min_confidence=min_confidence, settle_frames=settle_frames)
+        return grab(camera or self.require(), frames=frames, min_confidence=min_confidence,
+                    settle_frames=settle_frames)
 
     def live_fault(self) -> str | None:
         """A frame that failed in a job: the camera's own status keeps it until a frame succeeds."""

@@ -42,6 +42,7 @@ def status(call: Call, cfg: Any) -> dict[str, Any]:
     }
     if dispatcher.sleep_until is not None:
         data["sleep_left"] = f"{max(0.0, dispatcher.sleep_until - server.clock.now()):.1f}"
+    data.update(server.activities.status())
     data.update(server.devices.health())
     return data
 
