@@ -169,6 +169,32 @@ class Rover:
         the footprint."""
         return bool(np.any(self.footprint_protrusion() > step_height))
 
+    def clearance(self, step_height: float, reach: float, direction: int = 1) -> float:
+        """How far the body can drive straight on (direction +1 forward, -1 backward) before its
+        footprint covers a rock taller than step_height; 0 if it covers one now, inf beyond reach."""
+        c, grid = self.config, self.world.grid
+        half_l, half_w = c.body_length_m / 2, c.body_width_m / 2
+        cos_h, sin_h = math.cos(self.heading), math.sin(self.heading)
+        ahead = np.array([[-half_l, -half_w], [-half_l, half_w], [half_l + reach, -half_w], [half_l + reach, half_w]])
+        ahead[:, 0] *= direction
+        xs = self.x + cos_h * ahead[:, 0] - sin_h * ahead[:, 1]
+        ys = self.y + sin_h * ahead[:, 0] + cos_h * ahead[:, 1]
+        cols = np.arange(max(0, math.floor((xs.min() - grid.x_min) / grid.cell)),
+                         min(grid.cols, math.ceil((xs.max() - grid.x_min) / grid.cell)) + 1)
+        rows = np.arange(max(0, math.floor((ys.min() - grid.y_min) / grid.cell)),
+                         min(grid.rows, math.ceil((ys.max() - grid.y_min) / grid.cell)) + 1)
+        block = np.ix_(rows, cols)
+        tall = (self.world.heights[block] - self.world.ground[block]) > step_height
+        if not tall.any():
+            return math.inf
+        x, y = grid.x_of(cols)[None, :], grid.y_of(rows)[:, None]
+        along = ((x - self.x) * cos_h + (y - self.y) * sin_h) * direction
+        across = -(x - self.x) * sin_h + (y - self.y) * cos_h
+        inside = tall & (np.abs(across) <= half_w) & (along >= -half_l) & (along <= half_l + reach)
+        if not inside.any():
+            return math.inf
+        return float(max(0.0, along[inside].min() - half_l))
+
     def footprint_protrusion(self) -> np.ndarray:
         """Rock protrusion at the world grid points under the body footprint."""
         grid = self.world.grid

@@ -10,6 +10,7 @@ takes seconds and more than a gigabyte: a server that only drives the PTU never 
 """
 from __future__ import annotations
 
+import math
 import threading
 from pathlib import Path
 from typing import Callable
@@ -19,7 +20,7 @@ import numpy as np
 from .clock import SimClock
 from .config import WorldConfig
 from .faults import InjectedFaults
-from .motion import DriveError, Motion, execute
+from .motion import DriveError, Motion, PlannedMotion, execute, plan
 from .rover import Rover, RoverConfig
 from .world import World
 
@@ -127,6 +128,39 @@ class SimulatedTestbed:
         self.odometer_m += abs(motion.distance_m)
         self.contacts += motion.contacts
         return motion
+
+    def plan_drive(self, turn_rad: float, distance_m: float) -> PlannedMotion:
+        """The true trajectory of one motion command, with the rover's drive error; the rover does
+        not move until step_rover takes it along (a drive that can stop part-way)."""
+        return plan(self.rover.pose, turn_rad, distance_m, self.drive_error, self._motion_rng)
+
+    def leaves_world(self, poses: np.ndarray) -> str | None:
+        """Where a trajectory's footprint would leave the terrain (a sentence), or None."""
+        x_min, x_max, y_min, y_max = self.world.bounds
+        c = self.rover.config
+        reach = math.hypot(c.body_length_m, c.body_width_m) / 2
+        outside = ((poses[:, 0] - reach < x_min) | (poses[:, 0] + reach > x_max)
+                   | (poses[:, 1] - reach < y_min) | (poses[:, 1] + reach > y_max))
+        if not outside.any():
+            return None
+        x, y = poses[int(np.argmax(outside)), :2]
+        return (f"its footprint at ({x:.2f}, {y:.2f}) leaves the terrain [{x_min:g}, {x_max:g}] x "
+                f"[{y_min:g}, {y_max:g}] m")
+
+    def step_rover(self, pose: tuple[float, float, float], step_height: float = 0.10) -> bool:
+        """Move the rover to the next sample of a planned motion; True if its footprint now covers a
+        true obstacle (counted). Off the world's edge: ValueError, the rover stays where it was."""
+        rover = self.rover
+        before = rover.pose
+        try:
+            rover.place(*pose)
+        except ValueError:
+            rover.place(*before)
+            raise
+        self.odometer_m += float(np.hypot(pose[0] - before[0], pose[1] - before[1]))
+        contact = rover.collides(step_height)
+        self.contacts += int(contact)
+        return contact
 
     def inclination(self, noise_deg: float = 0.1) -> tuple[float, float]:
         """Roll and pitch (radians) as an inclinometer on the body reads them: truth plus noise."""

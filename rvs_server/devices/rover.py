@@ -30,6 +30,7 @@ from drivers.sim.motion import dead_reckon, turn_and_distance
 from toolbox.geometry import RoverPose
 
 from ..protocol import BadRequest, DeviceError, Timeout
+from .sharing import DeviceSharing
 
 if TYPE_CHECKING:
     from drivers.sim.testbed import SimulatedTestbed
@@ -39,7 +40,7 @@ DriveMode = Literal["auto", "simulated", "gnc"]
 POSE_POLL_S = 0.5
 NO_FORWARD_CAMERA = "the forward camera is the simulated rover's body-fixed camera and the devices are real"
 
-__all__ = ["Drive", "DriveMode", "ForwardCamera", "ForwardCameraConfig", "GncDrive", "Moved", "Pace", "RoverDevice",
+__all__ = ["Drive", "DriveGuard", "DriveMode", "DriveStopped", "ForwardCamera", "ForwardCameraConfig", "GncDrive", "Moved", "Pace", "RoverDevice",
            "SimulatedDrive", "WorldEdge", "dead_reckon"]
 
 
@@ -67,6 +68,32 @@ class Moved:
 
 class WorldEdge(BadRequest):
     """The simulated rover would leave the simulated world (a real rover's ground does not end)."""
+
+
+class DriveStopped(BadRequest):
+    """A guard stopped the rover short of a hazard (PROTOCOL.md: `drive stopped: hazard: SENTENCE`).
+    `moved` is the part of the move that was done; the pose estimate is where the rover stopped."""
+
+    def __init__(self, guard: str, sentence: str, moved: "Moved"):
+        super().__init__(f"drive stopped: {guard}: {sentence}")
+        self.guard, self.sentence, self.moved = guard, sentence, moved
+
+
+class DriveGuard(ABC):
+    """What may stop a simulated drive between two of its samples: hazard detection installs one
+    on the rover device while it runs (RoverDevice.guard)."""
+
+    name: ClassVar[str]
+
+    @abstractmethod
+    def check(self, job: "JobContext", pose: RoverPose, direction: int, remaining_m: float, speed_m_s: float,
+              started_s: float) -> str | None:
+        """Before the rover drives on from `pose` (direction +1 forward, -1 backward, remaining_m of
+        this leg left, at speed_m_s, in a move begun at simulated time started_s): None to go on, or
+        the sentence why it stops. May wait, in simulated time, for a fresh look ahead."""
+
+    def stopped(self, sentence: str, estimate: RoverPose, truth: dict | None) -> None:
+        """The rover stopped for this guard: `truth` is the simulator's view of the stop, if any."""
 
 
 def action_motion(kind: str, value: float) -> tuple[float, float]:
@@ -128,22 +155,55 @@ class SimulatedDrive(Drive):
 
     def move(self, job: "JobContext", turn: float, distance: float, pace: Pace, start: RoverPose | None = None,
              incline: bool = False) -> Moved:
-        """Turn, then drive (negative: backward), in simulated time. The estimate is dead-reckoned
-        from start (default: the estimate once the rover stopped); incline: roll and pitch from the
-        inclinometer, else start's."""
-        testbed = self.rover.testbed
-        job.sleep(abs(math.degrees(turn)) / pace.turn_rate_deg_s + abs(distance) / pace.speed_m_s)
-        try:
-            motion = testbed.drive(turn, distance, pace.step_height_m)
-        except ValueError as exc:   # the simulated world ends (a real rover's ground does not)
-            raise WorldEdge(f"the simulated rover would leave the simulated world: {exc}") from None
-        if start is None:
-            start = self.rover.pose_estimate
-        x, y, heading = dead_reckon((start.x, start.y, start.heading), turn, distance)
+        """Turn, then drive (negative: backward), sample by sample in simulated time, so a guard can
+        stop the rover between two samples (DriveStopped). The estimate is dead-reckoned from start
+        (default: the estimate now) as the samples go; incline: roll and pitch from the
+        inclinometer at the end, else start's."""
+        rover, testbed = self.rover, self.rover.testbed
+        rover.hand_over_sensors()
+        start = start or rover.pose_estimate
+        planned = testbed.plan_drive(turn, distance)
+        edge = testbed.leaves_world(planned.poses)
+        if edge is not None:   # refused before it moves: the simulated world ends (a real rover's ground does not)
+            raise WorldEdge(f"the simulated rover would leave the simulated world: {edge}")
+        direction = 1 if distance >= 0 else -1
+        drive_steps = planned.samples - planned.turn_steps
+        turn_s = abs(math.degrees(turn)) / pace.turn_rate_deg_s / planned.turn_steps
+        drive_s = abs(distance) / pace.speed_m_s / max(1, drive_steps)
+        done_turn, done_distance, contacts = 0.0, 0.0, 0
+        started_s = job.clock.now() if rover.guard is not None else 0.0
+        true_path: list[list[float]] = []
+        for k, true in enumerate(planned.poses[1:], start=1):
+            driving = k > planned.turn_steps
+            if driving and rover.guard is not None and distance != 0:
+                here = self._estimate(start, done_turn, done_distance, start.roll, start.pitch)
+                why = rover.guard.check(job, here, direction, abs(distance - done_distance), pace.speed_m_s,
+                                        started_s)
+                if why is not None:
+                    moved = Moved(here, (done_turn, done_distance), 1, contacts, true_path)
+                    rover.guard.stopped(why, here, rover.stop_truth(direction, pace.step_height_m))
+                    raise DriveStopped(rover.guard.name, why, moved)
+            job.sleep(drive_s if driving else turn_s)
+            try:
+                contacts += int(testbed.step_rover(tuple(true), pace.step_height_m))
+            except ValueError as exc:   # the simulated world ends (a real rover's ground does not)
+                rover.pose_estimate = self._estimate(start, done_turn, done_distance, start.roll, start.pitch)
+                raise WorldEdge(f"the simulated rover would leave the simulated world: {exc}") from None
+            true_path.append([float(v) for v in true])
+            if driving:
+                done_distance = distance * (k - planned.turn_steps) / drive_steps
+            else:
+                done_turn = turn * k / planned.turn_steps
+            rover.pose_estimate = self._estimate(start, done_turn, done_distance, start.roll, start.pitch)
         roll, pitch = testbed.inclination() if incline else (start.roll, start.pitch)
-        estimate = RoverPose(x, y, start.z, heading, roll, pitch)
-        self.rover.pose_estimate = estimate
-        return Moved(estimate, (turn, distance), 1, motion.contacts, motion.poses[1:].tolist())
+        estimate = self._estimate(start, turn, distance, roll, pitch)
+        rover.pose_estimate = estimate
+        return Moved(estimate, (turn, distance), 1, contacts, true_path)
+
+    @staticmethod
+    def _estimate(start: RoverPose, turn: float, distance: float, roll: float, pitch: float) -> RoverPose:
+        x, y, heading = dead_reckon((start.x, start.y, start.heading), turn, distance)
+        return RoverPose(x, y, start.z, heading, roll, pitch)
 
     def true_pose(self) -> list[float] | None:
         return self.rover.true_pose()
@@ -163,6 +223,7 @@ class GncDrive(Drive):
 
     def act(self, job: "JobContext", kind: str, value: float, pace: Pace) -> Moved:
         reports = self.rover.reports
+        self.rover.hand_over_sensors()
         shown = math.degrees(value) if kind == "turn" else value
         job.publish("navigate", {"job": job.job.id, "action": kind, "value": f"{shown:.4f}",
                                  "unit": "deg" if kind == "turn" else "m"})
@@ -173,6 +234,7 @@ class GncDrive(Drive):
                   goal: tuple[float, float], cycle: int,
                   announce: Callable[[Sequence[float] | None], None]) -> Iterator[Moved]:
         reports = self.rover.reports
+        self.rover.hand_over_sensors()
         job.publish("navigate", {"job": job.job.id, "cycle": cycle,
                                  "waypoints": " ".join(f"{x:.3f},{y:.3f}" for x, y in waypoints),
                                  "goal": f"{goal[0]:.3f},{goal[1]:.3f}"})
@@ -195,11 +257,14 @@ class RoverDevice:
 
     name = "rover"
 
-    def __init__(self, testbed: "SimulatedTestbed", simulated: Callable[[], bool]):
+    def __init__(self, testbed: "SimulatedTestbed", simulated: Callable[[], bool],
+                 sharing: DeviceSharing | None = None):
         self.testbed = testbed
         self._simulated = simulated
+        self._sharing = sharing
         self._pose = _Pose()
         self._forward: ForwardCamera | None = None
+        self.guard: DriveGuard | None = None   # set while hazard detection runs
 
     @property
     def simulated(self) -> bool:
@@ -209,7 +274,7 @@ class RoverDevice:
         """reinit builds the devices anew, and the rover has not moved: share the previous device's
         estimate and reports (a `pose` sent meanwhile lands in both), and keep the forward camera
         (its noise stream continues on the same world)."""
-        self._pose, self._forward = previous._pose, previous._forward
+        self._pose, self._forward, self.guard = previous._pose, previous._forward, previous.guard
 
     # ---------------------------------------------------------------------------------- the pose
     @property
@@ -257,6 +322,23 @@ class RoverDevice:
         if mode == "simulated" or (mode == "auto" and simulated):
             return SimulatedDrive(self)
         return GncDrive(self)
+
+    def hand_over_sensors(self) -> None:
+        """A rover that starts to move gives the job's PTU and sensors to the activities that guard
+        it (devices/sharing.py); the job takes them back when it looks again."""
+        if self._sharing is not None:
+            self._sharing.release_job("ptu", "tof", "cameras")
+
+    def stop_truth(self, direction: int, step_height: float) -> dict | None:
+        """Simulated: the true pose where a guard stopped the rover and the true free way left
+        before its footprint would touch a rock taller than step_height (metres, None: none within
+        5 m); None with real devices."""
+        if not self.simulated:
+            return None
+        rover = self.testbed.rover
+        clearance = rover.clearance(step_height, 5.0, direction)
+        return {"x": rover.x, "y": rover.y, "heading_rad": rover.heading, "contacts": self.testbed.contacts,
+                "clearance_m": None if math.isinf(clearance) else clearance}
 
     # ---------------------------------------------------------------------------------- the truth
     def wait_for_world(self) -> None:

@@ -35,7 +35,7 @@ from pydantic import Field
 from scipy.ndimage import distance_transform_edt
 
 from rvs_server.config import CommandConfig, Point, SafeName
-from rvs_server.devices.rover import Moved, Pace, WorldEdge, dead_reckon
+from rvs_server.devices.rover import DriveStopped, Moved, Pace, WorldEdge, dead_reckon
 from rvs_server.files import atomic_file, save_npy_atomic
 from rvs_server.jobs import JobContext
 from rvs_server.mapping import (MappingSettings, WorkflowArgs, check_workflow, leave_camera_as_acquired, operations,
@@ -93,6 +93,7 @@ class Traverse:
     cycles: list[dict[str, Any]] = field(default_factory=list)
     contacts: int = 0
     stalls: int = 0
+    hazard_stops: int = 0                # drives the hazard guard stopped short of a hazard (hazard-start)
     moved: list[float] = field(default_factory=lambda: [0.0, 0.0])  # metres, degrees since the last fix
     best_percent: float = 0.0
 
@@ -428,6 +429,14 @@ class Navigation:
                     self._driven(moved)
         except WorldEdge as exc:
             self.fail("world_edge", str(exc))
+        except DriveStopped as exc:
+            # The hazard guard saw what the maps did not (a rock dropped, a person): keep the part driven,
+            # drop the rest of the hand-out, and map again from here to plan round it.
+            self._driven(exc.moved, legs=0)
+            state.to_drive = []
+            state.hazard_stops += 1
+            state.cycles[-1]["hazard_stop"] = exc.sentence
+            self.progress(f"cycle {state.cycle}: {exc.message}; mapping again to plan round it")
 
     def _announce_leg(self, target: Sequence[float] | None) -> None:
         state = self.state
@@ -438,8 +447,9 @@ class Navigation:
             self.progress(f"cycle {state.cycle}: driving to ({target[0]:.2f}, {target[1]:.2f}), "
                           f"{self.distance_to_goal():.2f} m to go")
 
-    def _driven(self, moved: Moved) -> None:
-        """A leg the simulated rover drove: the estimate dead-reckoned, standing on the newest DEM."""
+    def _driven(self, moved: Moved, legs: int | None = None) -> None:
+        """A leg the simulated rover drove (legs: the waypoints it reached, default moved.legs): the
+        estimate dead-reckoned, standing on the newest DEM."""
         state = self.state
         turn, distance = moved.commanded
         rover, pose = state.rover, moved.estimate
@@ -450,7 +460,7 @@ class Navigation:
         state.contacts += moved.contacts
         state.moved = [state.moved[0] + abs(distance), state.moved[1] + abs(math.degrees(turn))]
         state.true_path.extend(moved.true_path)
-        del state.to_drive[:moved.legs]
+        del state.to_drive[:moved.legs if legs is None else legs]
         self.rover.pose_estimate = state.rover
         self._record_position(true=False)
         self.checkpoint()
