@@ -1,0 +1,198 @@
+"""Dynamic hazard detection as a background activity: one look along the rover's path per frame.
+
+Per frame: borrow the PTU and the sensor from the device layer (a job that holds either makes the
+frame `unknown`), point the sensor along the moving direction if it is not (pan 0, the configured
+tilt), take one frame and the pose estimate of that instant; then, with the devices given back,
+turn the frame into world points (the maps' artifact filter), build the low-resolution height map
+of the corridor the footprint will sweep and its hazards (toolbox/mapping/corridor.py: the maps' own
+DEM and hazard chain and mapping.toml thresholds), fold it into the rolling hazard memory the guard
+reads, and publish the nearest hazard in the path with the frame's latency (from the frame in hand
+to the event, wall clock).
+"""
+from __future__ import annotations
+
+import math
+import threading
+import time
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from rvs_server.activities import Activity
+from toolbox.camera import Intrinsics
+from toolbox.geometry import RoverPose, camera_to_world, relative_pose
+from toolbox.mapping import dem as dem_tools
+from toolbox.mapping.corridor import CorridorParams, CorridorView, HazardMemory, Hit, corridor_view
+from toolbox.mapping.hazard import HazardConfig
+from toolbox.mapping.stereo import SgbmConfig, StereoCalibration, rectification, stereo_points
+
+from .guard import HazardGuard, causes
+from .record import FrameRecord, write_product
+
+if TYPE_CHECKING:
+    from rvs_server.host import Host
+
+    from .commands import HazardSettings
+
+SENSOR_DEVICE = {"tof": "tof", "stereo": "cameras"}
+
+
+@dataclass(frozen=True)
+class Seen:
+    """The newest processed frame: when it was taken (simulated seconds) and from where."""
+
+    sim_s: float
+    pose: RoverPose
+
+
+class HazardActivity(Activity):
+    kind = "hazard"
+
+    def __init__(self, server: "Host", settings: "HazardSettings", sensor: str, rate_hz: float,
+                 stop_distance: float, product: Any):
+        super().__init__(server, rate_hz)
+        self.settings, self.sensor, self.stop_distance, self.product = settings, sensor, stop_distance, product
+        self.device = SENSOR_DEVICE[sensor]
+        mapping = server.settings_of("mapping")
+        calibration = server.calibration()
+        self.params = CorridorParams(
+            body_length=calibration.rover_length_m, body_width=calibration.rover_width_m,
+            side_margin=settings.side_margin_m, reach=settings.reach_m, cell=mapping.cell,
+            max_reach_cells=settings.max_reach_cells,
+            hazard=HazardConfig(slope_limit_deg=mapping.slope_limit_deg, step_limit=mapping.step_limit,
+                                roughness_limit=mapping.roughness_limit,
+                                step_min_cells=mapping.tof_step_min_cells if sensor == "tof" else 5))
+        self.min_confidence, self.max_range_m = mapping.min_confidence, mapping.max_range_m
+        self.mounts = calibration.mounts
+        self.tilt_deg = settings.tof_tilt_deg if sensor == "tof" else settings.stereo_tilt_deg
+        self.memory = HazardMemory(self.params)
+        self._memory_lock = threading.Lock()
+        self.newest: Seen | None = None
+        self.last_unknown = ""
+        self.records: list[FrameRecord] = []
+        self.views: list[CorridorView] = []    # the last frames', for the picture
+        self.guard = HazardGuard(self)
+        self._rectified: tuple | None = None   # stereo: rectification and intrinsics, made once
+
+    # -- what the guard asks -----------------------------------------------------------------------
+    def nearest(self, pose: tuple[float, float, float], direction: int, max_distance: float) -> Hit | None:
+        with self._memory_lock:
+            return self.memory.nearest(pose, direction, max_distance)
+
+    def start(self) -> None:
+        self.server.devices.rover.guard = self.guard
+        super().start()
+
+    # -- one frame ---------------------------------------------------------------------------------
+    def frame(self, seq: int) -> dict[str, Any]:
+        devices = self.server.devices
+        with devices.sharing.borrow("ptu", self.device) as busy:
+            if busy is not None:
+                return self.unknown(seq, f"a job holds the {busy}")
+            pan, tilt = self._point(devices)
+            pose = devices.rover.pose_estimate
+            truth = devices.rover.true_pose()
+            sim_s = self.server.clock.now()
+            points_camera, valid, camera_pose = self._grab(devices, pose, pan, tilt)
+            taken = time.perf_counter()
+        points = dem_tools.view_points(points_camera, valid, camera_pose)
+        view = corridor_view(points, (pose.x, pose.y, pose.heading), self.params, 1)
+        direction = self.guard.direction
+        with self._memory_lock:
+            self.memory.update(view)
+            hit = self.memory.nearest((pose.x, pose.y, pose.heading), direction, self.params.reach)
+        self.newest = Seen(sim_s, pose)
+        latency_ms = (time.perf_counter() - taken) * 1000.0
+        self.views = (self.views + [view])[-self.settings.picture_frames:]
+        record = FrameRecord(seq, sim_s, "hazard" if hit else "clear", hit, latency_ms, view.seen, len(points),
+                             pose, pan, tilt, direction, truth=truth)
+        self.records.append(record)
+        return record.event()
+
+    def unknown(self, seq: int, reason: str) -> dict[str, Any]:
+        self.last_unknown = reason
+        record = FrameRecord(seq, self.server.clock.now(), "unknown", None, 0.0, 0.0, 0,
+                             self.server.devices.rover.pose_estimate, math.nan, math.nan, self.guard.direction,
+                             reason=reason)
+        self.records.append(record)
+        return record.event()
+
+    def _point(self, devices: Any) -> tuple[float, float]:
+        """Pan 0 and the activity's tilt, moving there first if the unit stands elsewhere."""
+        ptu = devices.ptu.ready_driver()
+        position = devices.ptu.read_position()
+        if abs(position[0]) > 0.5 or abs(position[1] - self.tilt_deg) > 0.5:
+            ptu.move_to(0.0, self.tilt_deg, speed_deg_s=self.server.settings_of("ptu").default_speed_deg_s)
+            ptu.wait_until_stopped(timeout_s=60.0)
+            position = devices.ptu.read_position()
+        return position
+
+    def _grab(self, devices: Any, pose: RoverPose, pan: float, tilt: float):
+        """One frame's points in the camera frame, the pixels to trust, and the camera's pose."""
+        pan_rad, tilt_rad = math.radians(pan), math.radians(tilt)
+        if self.sensor == "tof":
+            tof = devices.tof
+            result = tof.grab(frames=1, min_confidence=self.min_confidence, settle_frames=0,
+                              camera=tof.ready_driver())
+            points = result.frame.xyz()
+            valid = result.defined & (np.linalg.norm(np.nan_to_num(points, nan=np.inf), axis=-1) <= self.max_range_m)
+            return points, valid, camera_to_world(pose, self.mounts["tof"], pan_rad, tilt_rad)
+        pair = devices.cameras.ready_driver()
+        frames = pair.grab("both", timeout_s=devices.cameras.grab_timeout_s)
+        left_pose = camera_to_world(pose, self.mounts["left"], pan_rad, tilt_rad)
+        right_pose = camera_to_world(pose, self.mounts["right"], pan_rad, tilt_rad)
+        rect, factor, config = self._rectification(devices, pair, left_pose, right_pose)
+        left, right = (_smaller(_grey(frames[role].image), factor) for role in ("left", "right"))
+        points, valid = stereo_points(left, right, rect, config)
+        valid &= points[..., 2] < self.settings.stereo_max_range_m
+        return points, valid, left_pose
+
+    def _rectification(self, devices: Any, pair: Any, left_pose: np.ndarray, right_pose: np.ndarray):
+        """The pair's rectification at the hazard resolution: the mounts do not move, so once."""
+        if self._rectified is None:
+            factor = self.settings.stereo_downscale
+            mode = devices.cameras.config.resolution
+            left, right = (_scaled(pair.camera(role).intrinsics(mode), factor) for role in ("left", "right"))
+            rect = rectification(StereoCalibration(left, right, relative_pose(left_pose, right_pose)))
+            config = SgbmConfig(num_disparities=self.settings.stereo_disparities, block_size=5)
+            self._rectified = (rect, factor, config)
+        return self._rectified
+
+    # -- the end -------------------------------------------------------------------------------------
+    def finish(self) -> dict[str, Any]:
+        rover = self.server.devices.rover
+        if rover.guard is self.guard:
+            rover.guard = None
+        hazards = sum(1 for r in self.records if r.state == "hazard")
+        measured = [r.latency_ms for r in self.records if r.state != "unknown"]
+        write_product(self.product, self.records, self.guard.stops, self.views, self.memory, self.params,
+                      self.settings, self.sensor)
+        self.server.publish_threadsafe("product", {"name": self.product.name, "command": "hazard-start",
+                                                   "path": str(self.product.path)})
+        return {"activity": "hazard", "frames": self.frames, "rate": f"{self.measured_rate():.2f}",
+                "hazards": hazards, "stops": len(self.guard.stops),
+                "latency_ms": f"{np.percentile(measured, 95):.1f}" if measured else "none",
+                "product": self.product.name, "path": str(self.product.path)}
+
+
+def _grey(image: np.ndarray) -> np.ndarray:
+    return image if image.ndim == 2 else np.round(image.mean(axis=2)).astype(np.uint8)
+
+
+def _smaller(image: np.ndarray, factor: int) -> np.ndarray:
+    if factor == 1:
+        return image
+    import cv2
+    return cv2.resize(image, (image.shape[1] // factor, image.shape[0] // factor), interpolation=cv2.INTER_AREA)
+
+
+def _scaled(k: Intrinsics, factor: int) -> Intrinsics:
+    """The intrinsics of an image `factor` times smaller (pixel centres at integers)."""
+    if factor == 1:
+        return k
+    return Intrinsics(k.width // factor, k.height // factor, k.fx / factor, k.fy / factor,
+                      (k.cx + 0.5) / factor - 0.5, (k.cy + 0.5) / factor - 0.5, k.k1, k.k2)
+
+
+__all__ = ["HazardActivity", "causes"]

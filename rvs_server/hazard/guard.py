@@ -1,0 +1,71 @@
+"""The guard: while hazard detection runs, every simulated drive asks it before each 5 cm sample.
+
+Two rules, both in the distance the rover drives rather than in time, so they hold at any
+simulation speed-up and on a real rover alike:
+- it never drives blind: at least one frame taken since this move began, and the newest frame taken
+  no more than `blind` metres back (speed x (1/rate + the latency budget)); otherwise it waits, in
+  simulated time, and after `max_blind_s` it stops rather than drive on unseen ground;
+- a hazard the frames saw (HazardMemory: also ground that has since passed below the sensor's view)
+  that the footprint would cover within the stop distance, and within what is left of this leg,
+  stops it.
+"""
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING
+
+from rvs_server.devices.rover import DriveGuard
+from toolbox.geometry import RoverPose
+from toolbox.mapping import hazard as hazard_codes
+
+if TYPE_CHECKING:
+    from rvs_server.jobs import JobContext
+
+    from .activity import HazardActivity
+
+WAIT_STEP_S = 0.05   # simulated seconds between two looks for a fresh frame
+
+
+def causes(code: int) -> str:
+    """The hazard code's causes as words: 'step', 'slope and step'."""
+    words = [name for bit, name in ((hazard_codes.SLOPE, "slope"), (hazard_codes.STEP, "step"),
+                                    (hazard_codes.ROUGHNESS, "rough ground")) if code & bit]
+    return " and ".join(words) or "hazard"
+
+
+class HazardGuard(DriveGuard):
+    name = "hazard"
+
+    def __init__(self, activity: "HazardActivity"):
+        self.activity = activity
+        self.direction = 1          # of the drive in progress: the activity reports along it
+        self.stops: list[dict] = []
+
+    def check(self, job: "JobContext", pose: RoverPose, direction: int, remaining_m: float, speed_m_s: float,
+              started_s: float) -> str | None:
+        self.direction = direction
+        activity = self.activity
+        settings = activity.settings
+        blind = max(0.05, speed_m_s * (1.0 / activity.rate_hz + settings.latency_budget_s))
+        waited = 0.0
+        while True:
+            newest = activity.newest
+            if newest is not None and newest.sim_s >= started_s and \
+                    math.dist((newest.pose.x, newest.pose.y), (pose.x, pose.y)) <= blind:
+                break
+            if waited >= settings.max_blind_s:
+                why = activity.last_unknown or "no frame was processed"
+                return (f"no hazard frame within {blind:.2f} m for {waited:.1f} s ({why}); the guard does not "
+                        f"drive on unseen ground")
+            job.sleep(WAIT_STEP_S)
+            waited += WAIT_STEP_S
+        hit = activity.nearest((pose.x, pose.y, pose.heading), direction, min(activity.stop_distance, remaining_m))
+        if hit is None:
+            return None
+        return (f"{causes(hit.cause)} {hit.distance:.2f} m ahead at {hit.x:.2f},{hit.y:.2f} (within the stop "
+                f"distance {activity.stop_distance:.2f} m)")
+
+    def stopped(self, sentence: str, estimate: RoverPose, truth: dict | None) -> None:
+        self.stops.append({"seq": self.activity.frames, "sim_s": self.activity.server.clock.now(), "reason": sentence,
+                           "x": estimate.x, "y": estimate.y, "heading_deg": math.degrees(estimate.heading),
+                           "truth": truth})
