@@ -9,7 +9,6 @@ import time
 import numpy as np
 import pytest
 
-from toolbox.grid import GridSpec
 from toolbox.mapping import corridor as C
 from toolbox.mapping import hazard as H
 
