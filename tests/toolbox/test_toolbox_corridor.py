@@ -9,7 +9,6 @@ import time
 import numpy as np
 import pytest
 
-from toolbox.grid import GridSpec
 from toolbox.mapping import corridor as C
 from toolbox.mapping import hazard as H
 
@@ -202,6 +201,12 @@ def test_swept_cells_counts_squares_that_overlap():
     probe = centre + side * np.array([[HALF_W + 0.034], [HALF_W + 0.036]])
     inside, _ = C.swept_cells(probe[:, 0], probe[:, 1], pose, 1, PARAMS.body_length, HALF_W, 2.0, 0.05)
     assert inside.tolist() == [True, False]
+    # Past the front-left corner, the highest point of the rectangle at 45 degrees, a square is out
+    # once its lower edge clears the corner, though both path-axis bands still reach it.
+    corner = centre * (HALF_L + 2.0) + side * HALF_W
+    probe = corner + np.array([[0.0, 0.024], [0.0, 0.026]])
+    inside, _ = C.swept_cells(probe[:, 0], probe[:, 1], pose, 1, PARAMS.body_length, HALF_W, 2.0, 0.05)
+    assert inside.tolist() == [True, False]
     # Behind the rover only when driving backward.
     inside, distance = C.swept_cells(np.array([-1.0]), np.array([0.0]), (0.0, 0.0, 0.0), -1,
                                      PARAMS.body_length, HALF_W, 1.0, 0.05)
@@ -244,6 +249,27 @@ def test_memory_keeps_a_hazard_that_left_the_view_and_drops_it_when_seen_clear()
     memory.update(C.corridor_view(frame(terrain, start, seed=2), start, PARAMS))
     assert memory.nearest(closer, 1, 1.0) is None
     assert memory.nearest(start, 1, PARAMS.reach) is None
+
+
+@pytest.mark.parametrize("heading_deg, slope_deg, lateral, rock_yaw", [(0.0, 0.0, 0.0, 0.0), (37.0, 3.0, 0.1, 0.3),
+                                                                       (140.0, 4.0, -0.25, 1.0)])
+def test_memory_tracks_a_rock_all_the_way_under_the_bumper(heading_deg, slope_deg, lateral, rock_yaw):
+    # A frame every 0.1 m while driving at a rock: long after it dropped below the view (about 0.8 m
+    # before the bumper) the memory reports it at its distance, down to 0 under the footprint.
+    start = (0.0, 0.0, math.radians(heading_deg))
+    terrain = flat(slope_deg, 1.0)
+    rock = (*path_point(start, HALF_L + 2.5, lateral), rock_yaw)
+    memory = C.HazardMemory(PARAMS)
+    checked = 0
+    for k in range(30):
+        pose = (*path_point(start, 0.1 * k), start[2])
+        memory.update(C.corridor_view(frame(terrain, pose, [rock], seed=k), pose, PARAMS))
+        truth = rock_nearest_distance(pose, rock)
+        if truth < 0.9:
+            hit = memory.nearest(pose, 1, 1.0)
+            assert hit is not None and abs(hit.distance - max(truth, 0.0)) <= CELL, (k, truth, hit)
+            checked += 1
+    assert checked >= 10
 
 
 def test_memory_view_agrees_with_the_view():

@@ -163,30 +163,44 @@ class HazardMemory:
     a person walked away, is clear again); its unknown cells leave the old state. When a view does
     not fit inside the grid, the grid is re-centred on the view's rover position (cell-aligned),
     keeping the cells both grids share; what falls outside is forgotten.
-    nearest: the nearest remembered hazard the footprint would cover driving up to max_distance."""
+    nearest: the nearest remembered hazard the footprint would cover driving up to max_distance.
+
+    One writer (update, recentre, clear: the frame activity) and any number of readers (nearest:
+    the drive) may share it across threads: the grid and its placement are swapped as one reference,
+    so a reader sees either grid whole; within one update a reader may see some of the view's cells
+    written and others not yet, each cell old or new."""
 
     def __init__(self, params: CorridorParams = CorridorParams(), size: float = 16.0):
         if not size > 0:
             raise ValueError(f"size must be > 0, got {size!r}")
         self.params = params
         self.cells = max(1, int(round(size / params.cell)))
-        self.code = np.full((self.cells, self.cells), H.UNKNOWN, dtype=np.uint8)
-        self.spec: GridSpec | None = None      # placed by the first update
+        # (placement, codes): the placement is None until the first update places the grid.
+        self._grid: tuple[GridSpec | None, np.ndarray] = (None, self._blank())
+
+    @property
+    def spec(self) -> GridSpec | None:
+        return self._grid[0]
+
+    @property
+    def code(self) -> np.ndarray:
+        """The remembered codes on `spec` (uint8; UNKNOWN where never seen). Do not write to it."""
+        return self._grid[1]
 
     def clear(self) -> None:
-        self.code[:] = H.UNKNOWN
-        self.spec = None
+        self._grid = (None, self._blank())
 
     def update(self, view: CorridorView) -> None:
         if abs(view.spec.cell - self.params.cell) > 1e-9 * self.params.cell:
             raise ValueError(f"view cell {view.spec.cell} differs from the memory's {self.params.cell}")
         if self.spec is None or not self._holds(view.spec):
             self.recentre(view.pose[0], view.pose[1])
-        target, source = _overlap_slices(view.spec, self.spec)
+        spec, code = self._grid
+        target, source = _overlap_slices(view.spec, spec)
         if target is None:
             return
         new = view.code[source]
-        old = self.code[target]
+        old = code[target]
         known = new != H.UNKNOWN
         old[known] = new[known]
 
@@ -197,14 +211,15 @@ class HazardMemory:
         col0 = int(math.floor(x / cell - half + 0.5))
         row0 = int(math.floor(y / cell - half + 0.5))
         spec = GridSpec(col0 * cell, row0 * cell, cell, self.cells, self.cells)
-        if self.spec is None:
-            self.spec = spec
+        old_spec, old_code = self._grid
+        if old_spec is None:
+            self._grid = (spec, old_code)
             return
-        code = np.full_like(self.code, H.UNKNOWN)
-        target, source = _overlap_slices(self.spec, spec)
+        code = self._blank()
+        target, source = _overlap_slices(old_spec, spec)
         if target is not None:
-            code[target] = self.code[source]
-        self.code, self.spec = code, spec
+            code[target] = old_code[source]
+        self._grid = (spec, code)
 
     def nearest(self, pose: tuple[float, float, float], direction: int, max_distance: float) -> Hit | None:
         """The nearest remembered hazard cell the footprint would cover driving up to max_distance
@@ -212,7 +227,10 @@ class HazardMemory:
         trailing edge to the leading edge + max_distance, half width body_width / 2 + side_margin,
         cells counted as in corridor_view. Distance from the leading edge, 0 if already under it."""
         _check_direction(direction)
-        if self.spec is None:
+        if not max_distance >= 0:
+            raise ValueError(f"max_distance must be >= 0, got {max_distance!r}")
+        spec, code = self._grid
+        if spec is None:
             return None
         p = self.params
         x0, y0, heading = (float(v) for v in pose)
@@ -220,17 +238,20 @@ class HazardMemory:
         half_l, half_w = p.body_length / 2, p.half_width
         # Only the cells of the rectangle's bounding box are looked at.
         window = _covering_grid((x0, y0), (c, s), (-half_l, half_l + max_distance), half_w, p.cell)
-        target, source = _overlap_slices(window, self.spec)
+        target, _ = _overlap_slices(window, spec)
         if target is None:
             return None
-        rows, cols = np.nonzero(H.is_hazard(self.code[target]))
+        rows, cols = np.nonzero(H.is_hazard(code[target]))
         if len(rows) == 0:
             return None
         rows, cols = rows + target[0].start, cols + target[1].start
-        xs, ys = self.spec.centre_of(rows, cols)
+        xs, ys = spec.centre_of(rows, cols)
         inside, distance = swept_cells(xs, ys, (x0, y0, heading), direction, p.body_length, half_w,
                                        max_distance, p.cell)
-        return _nearest_hit(self.spec, self.code, rows[inside], cols[inside], distance[inside])
+        return _nearest_hit(spec, code, rows[inside], cols[inside], distance[inside])
+
+    def _blank(self) -> np.ndarray:
+        return np.full((self.cells, self.cells), H.UNKNOWN, dtype=np.uint8)
 
     def _holds(self, spec: GridSpec) -> bool:
         own = self.spec
