@@ -25,7 +25,6 @@ from .motion import DriveError, Motion, execute
 from .rover import Rover, RoverConfig
 from .world import World
 
-
 WALK_STEP_M = 0.005   # a walking astronaut is moved once it is this far from where it stands
 
 
