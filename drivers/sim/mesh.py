@@ -17,17 +17,50 @@ PLANE_CHUNK = 500_000  # points per vectorised plane evaluation (each needs 72 b
 
 
 class TriangleSurface:
-    """Triangles in world coordinates, kept in float64 for exact planes; Embree is built on first use."""
+    """Triangles in world coordinates, kept in float64 for exact planes; Embree is built on first use.
+
+    A surface has a static part (the built world: one big Embree scene, built once) and may have a
+    small dynamic part (obstacles added after the build) in a second scene of its own. A surface never
+    changes: `with_dynamic` makes a new one that shares the static part, so a reader holding a
+    surface sees one consistent set of triangles however the world changes meanwhile. Triangle ids
+    are the static triangles first, then the dynamic ones, in `vertices`, `triangles`,
+    `face_normals` and every id `cast` and `triangle_under` give.
+    """
 
     def __init__(self, vertices: np.ndarray, triangles: np.ndarray):
         self.vertices = np.ascontiguousarray(vertices, dtype=np.float64)
         self.triangles = np.ascontiguousarray(triangles, dtype=np.uint32)
         self.face_normals = _face_normals(self.vertices, self.triangles)
         self.top = float(self.vertices[:, 2].max(initial=0.0)) + 1.0
+        self.static = self                   # the surface without a dynamic part
+        self.static_triangles = len(self.triangles)
         self._scene: o3d.t.geometry.RaycastingScene | None = None
+        self._dynamic_scene: o3d.t.geometry.RaycastingScene | None = None
+
+    def with_dynamic(self, vertices: np.ndarray, triangles: np.ndarray) -> "TriangleSurface":
+        """A new surface: this one's static part (arrays and Embree scene shared, not rebuilt) plus
+        `vertices` (V, 3) and `triangles` (T, 3, indices into `vertices`) as its dynamic part, in a
+        small scene of its own (milliseconds to build). No triangles: the static surface itself."""
+        static = self.static
+        if len(triangles) == 0:
+            return static
+        static.scene                             # built once, shared by every version
+        vertices = np.ascontiguousarray(vertices, dtype=np.float64)
+        triangles = np.ascontiguousarray(triangles, dtype=np.uint32)
+        dynamic_scene = o3d.t.geometry.RaycastingScene()
+        dynamic_scene.add_triangles(o3d.core.Tensor(vertices.astype(np.float32)), o3d.core.Tensor(triangles))
+        surface = object.__new__(TriangleSurface)
+        surface.vertices = np.concatenate([static.vertices, vertices])
+        surface.triangles = np.concatenate([static.triangles, triangles + np.uint32(len(static.vertices))])
+        surface.face_normals = np.concatenate([static.face_normals, _face_normals(vertices, triangles)])
+        surface.top = max(static.top, float(vertices[:, 2].max()) + 1.0)
+        surface.static, surface.static_triangles = static, static.static_triangles
+        surface._scene, surface._dynamic_scene = static._scene, dynamic_scene
+        return surface
 
     @property
     def scene(self) -> o3d.t.geometry.RaycastingScene:
+        """The static part's Embree scene."""
         if self._scene is None:
             scene = o3d.t.geometry.RaycastingScene()
             scene.add_triangles(o3d.core.Tensor(self.vertices.astype(np.float32)),
@@ -37,13 +70,24 @@ class TriangleSurface:
 
     def cast(self, rays: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """First hits of float32 rays (..., 6): distance in direction-length units and triangle id."""
-        result = self.scene.cast_rays(o3d.core.Tensor.from_numpy(np.ascontiguousarray(rays, dtype=np.float32)))
-        return result["t_hit"].numpy(), result["primitive_ids"].numpy().astype(np.int64)
+        rays = o3d.core.Tensor.from_numpy(np.ascontiguousarray(rays, dtype=np.float32))
+        result = self.scene.cast_rays(rays)
+        t_hit, ids = result["t_hit"].numpy(), result["primitive_ids"].numpy().astype(np.int64)
+        if self._dynamic_scene is not None:
+            near = self._dynamic_scene.cast_rays(rays)
+            near_t = near["t_hit"].numpy()
+            nearer = near_t < t_hit
+            t_hit = np.where(nearer, near_t, t_hit)
+            ids = np.where(nearer, near["primitive_ids"].numpy().astype(np.int64) + self.static_triangles, ids)
+        return t_hit, ids
 
     def occluded(self, rays: np.ndarray) -> np.ndarray:
         """True where a ray meets the surface at all (shadow rays)."""
         rays = o3d.core.Tensor.from_numpy(np.ascontiguousarray(rays, dtype=np.float32))
-        return self.scene.test_occlusions(rays).numpy()
+        hit = self.scene.test_occlusions(rays).numpy()
+        if self._dynamic_scene is not None:
+            hit = hit | self._dynamic_scene.test_occlusions(rays).numpy()
+        return hit
 
     def triangle_under(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Index of the topmost triangle over each (x, y); -1 where there is none."""

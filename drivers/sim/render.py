@@ -134,8 +134,10 @@ def render(world: World, camera_to_world: np.ndarray, camera: Intrinsics, sun: S
 
     The rays are cast here; each image of the returned view is computed when first read.
     `sun` overrides world.sun for this view. With shadows=False no shadow rays are cast (faster;
-    `lit` then only says whether a surface faces the sun).
+    `lit` then only says whether a surface faces the sun). The view keeps the world as it was when
+    the rays were cast: obstacles added or removed meanwhile (in another thread) change no image of it.
     """
+    world = world.snapshot()   # the view's rays and every image of it see one state of the world
     pose = np.asarray(camera_to_world, dtype=np.float64)
     directions_camera = camera.ray_directions().reshape(-1, 3)
     origin = pose[:3, 3]

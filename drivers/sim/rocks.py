@@ -271,6 +271,36 @@ def _sink_skirt(world: np.ndarray, sectors: int, c: np.ndarray, grid: GridSpec, 
     skirt[..., 2] = np.minimum(under, outline[..., 2]) - margin
 
 
+def dropped_rock(x: float, y: float, height: float, diameter: float, rng: np.random.Generator,
+                 config: RockConfig, grid: GridSpec, ground: np.ndarray) -> tuple[RockBodies, RockMeshes, int]:
+    """One rock like the world's own (same shapes, roof and sunk skirt), at (x, y) with `diameter`
+    and its highest point exactly `height` above the rock-free ground under that point: the body is
+    drawn as the world's rocks are (aspect, height ratio, burial, orientation, albedo from `config`),
+    then its heights above the ground at its centre are scaled to the protrusion asked for (a change
+    of heights keeps every facet facing up, so the rock stays 2.5-D). Returns the body, the mesh and
+    the number of skirt vertices (the first ones: the outermost ring, under the ground)."""
+    one = lambda low_high: rng.uniform(*low_high, 1)  # noqa: E731
+    bodies = RockBodies(x=np.array([float(x)]), y=np.array([float(y)]), diameter=np.array([float(diameter)]),
+                        aspect=one(config.aspect_range), height_ratio=one(config.height_ratio_range),
+                        buried_fraction=one(config.buried_fraction_range),
+                        orientation=rng.uniform(0.0, 2 * math.pi, 1), albedo=one(config.albedo_range))
+    shape = next(shape for upper, shape in ROCK_SHAPES if diameter < upper)
+    mesh = _rock_meshes(bodies, np.array([0]), shape, grid, ground, rng)
+    n = shape.sectors
+    vertices = mesh.vertices.reshape(1, -1, 3)
+    under = bilinear(ground, grid, vertices[0, :, 0], vertices[0, :, 1])
+    centre = float(bilinear(ground, grid, x, y))
+    body = vertices[0, n:]
+    for _ in range(8):   # the highest vertex may change as the scale does; a few rounds settle it
+        above = body[:, 2] - under[n:]
+        top = int(np.argmax(above))
+        if abs(above[top] - height) < 1e-12:
+            break
+        body[:, 2] = centre + (body[:, 2] - centre) * (height + under[n + top] - centre) / (body[top, 2] - centre)
+    _sink_skirt(vertices, n, np.array([height / 2]), grid, ground)
+    return bodies, RockMeshes(vertices[0], mesh.triangles, mesh.rock_of_triangle, mesh.rock_of_vertex), n
+
+
 # ------------------------------------------------------------------------------------ footprints
 def candidate_points(bodies: RockBodies, meshes: RockMeshes, grid: GridSpec) -> np.ndarray:
     """Flat indices of the grid points inside any rock's bounding box (each once)."""

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 import threading
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
@@ -23,6 +24,30 @@ from .faults import InjectedFaults
 from .motion import DriveError, Motion, PlannedMotion, execute, plan
 from .rover import Rover, RoverConfig
 from .world import World
+
+WALK_STEP_M = 0.005   # a walking astronaut is moved once it is this far from where it stands
+
+
+@dataclass(frozen=True)
+class Walk:
+    """An astronaut walking from `start` to `end` and back at `speed`, from simulation time `since`."""
+
+    start: tuple[float, float]
+    end: tuple[float, float]
+    speed: float
+    since: float
+
+    def where(self, now: float) -> tuple[float, float, float]:
+        """(x, y, heading) at simulation time `now`."""
+        dx, dy = self.end[0] - self.start[0], self.end[1] - self.start[1]
+        length = math.hypot(dx, dy)
+        if length == 0 or self.speed <= 0:
+            return (*self.start, 0.0)
+        walked = (self.speed * max(0.0, now - self.since)) % (2 * length)
+        back = walked > length
+        share = (2 * length - walked if back else walked) / length
+        heading = math.atan2(-dy, -dx) if back else math.atan2(dy, dx)
+        return self.start[0] + share * dx, self.start[1] + share * dy, heading
 
 
 class SimulatedTestbed:
@@ -47,6 +72,10 @@ class SimulatedTestbed:
         self.ptu_angles: Callable[[], tuple[float, float]] = lambda: (0.0, 0.0)
         # Broken hardware switched on by `sim-fault`; every emulator made on this bed asks its switch.
         self.faults = InjectedFaults()
+        # The one astronaut `astronaut` puts in the world: its obstacle id, and its walk if it walks.
+        self.astronaut_id: int | None = None
+        self.walk: Walk | None = None
+        self._obstacles_lock = threading.Lock()
 
     # -- the world, built once ------------------------------------------------------------------
 
@@ -113,6 +142,7 @@ class SimulatedTestbed:
 
     def sensor_pose(self, sensor: str) -> np.ndarray:
         """The true camera-to-world pose of a sensor now (OpenCV camera frame)."""
+        self.update_obstacles()
         pan, tilt = self.ptu_angles()
         return self.rover.sensor_to_world(sensor, pan, tilt)
 
@@ -170,6 +200,7 @@ class SimulatedTestbed:
 
     def truth(self) -> dict:
         """The state of the moment, for a product's truth/ folder."""
+        self.update_obstacles()
         rover = self.rover
         pan, tilt = self.ptu_angles()
         roll, pitch = rover.roll_pitch()
@@ -182,4 +213,78 @@ class SimulatedTestbed:
             "sensors": {name: rover.sensor_to_world(name, pan, tilt).tolist() for name in rover.sensors},
             "world": {"seed": self.world_config.seed, "file": str(self.world_file) if self.world_file else None,
                       "sun": self.world.sun.model_dump() if hasattr(self.world.sun, "model_dump") else None},
+            "obstacles": self.obstacles(),
         }
+
+    # -- obstacles no map knew ------------------------------------------------------------------
+
+    def obstacles(self) -> list[dict]:
+        """The obstacles added to the world (World.obstacles), a walking astronaut's walk with it."""
+        records = self.world.obstacles()
+        walk = self.walk
+        for record in records:
+            if walk is not None and record["id"] == self.astronaut_id:
+                record["walk"] = {"from": list(walk.start), "to": list(walk.end), "speed_m_s": walk.speed}
+        return records
+
+    def drop_rock(self, x: float, y: float, height: float, diameter: float, seed: int | None = None) -> dict:
+        """Drop a rock (World.add_rock) anywhere but on the rover's true footprint; its record."""
+        rock = self.world.add_rock(x, y, height, diameter, seed, keep_clear=self.rover.footprint())
+        return self._record(rock)
+
+    def remove_obstacle(self, obstacle_id: int) -> None:
+        with self._obstacles_lock:
+            self.world.remove_obstacle(obstacle_id)
+            if obstacle_id == self.astronaut_id:
+                self.astronaut_id, self.walk = None, None
+
+    def clear_rocks(self) -> list[int]:
+        """Take every dropped rock away (the astronaut stays); their ids."""
+        return self.world.clear_obstacles("rock")
+
+    def place_astronaut(self, x: float, y: float, to: tuple[float, float] | None = None,
+                        speed: float = 0.5) -> dict:
+        """Stand the one astronaut at (x, y) (moving it if it is there), or, with `to`, start it walking
+        from (x, y) to `to` and back at `speed` (m/s of simulation time). A standing astronaut may not
+        be put on the rover; a walking one walks where it walks (both ends must lie in the world)."""
+        with self._obstacles_lock:
+            world = self.world
+            clear = self.rover.footprint() if to is None else None
+            heading = 0.0 if to is None else math.atan2(to[1] - y, to[0] - x)
+            if self.astronaut_id is None:
+                self.astronaut_id = world.add_astronaut(x, y, heading, keep_clear=clear)
+                placed = True
+            else:
+                placed = False
+            try:
+                if to is not None:
+                    world.move_obstacle(self.astronaut_id, *to, heading)   # refused if the far end is off the world
+                world.move_obstacle(self.astronaut_id, x, y, heading, keep_clear=clear)
+            except ValueError:
+                if placed:
+                    world.remove_obstacle(self.astronaut_id)
+                    self.astronaut_id = None
+                elif self.walk is not None:
+                    self._step(self.walk)
+                raise
+            self.walk = None if to is None else Walk((x, y), tuple(to), speed, self.clock.now())
+            return self._record(self.astronaut_id)
+
+    def update_obstacles(self) -> None:
+        """Bring a walking astronaut to where it is at the simulation clock's now (sensors ask for
+        their pose before each render; truth() before each record)."""
+        walk = self.walk
+        if walk is None or not self.ready:
+            return
+        with self._obstacles_lock:
+            if self.walk is walk:
+                self._step(walk)
+
+    def _step(self, walk: Walk) -> None:
+        x, y, heading = walk.where(self.clock.now())
+        record = self._record(self.astronaut_id)
+        if math.hypot(x - record["x"], y - record["y"]) >= WALK_STEP_M or heading != record["heading_rad"]:
+            self.world.move_obstacle(self.astronaut_id, x, y, heading)
+
+    def _record(self, obstacle_id: int) -> dict:
+        return next(o for o in self.world.obstacles() if o["id"] == obstacle_id)

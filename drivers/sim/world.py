@@ -6,12 +6,22 @@ turns it into a bounded-error triangle mesh (rtin.py), adds every rock as its ow
 rendered from it and every truth query is answered on it, so the two cannot disagree. The ground
 grid lies within `mesh_tolerance_m` of the ground mesh.
 
+Obstacles no map knew (a dropped rock, a standing person: obstacles.py) can be added to a built world
+and removed again. They join THE surface as a small dynamic part of it (mesh.TriangleSurface.
+with_dynamic), the rock table and `heights`; the world's own state (surface, rock_of_triangle, rocks,
+heights, obstacles) is one immutable record swapped by one assignment, so a reader in another thread
+(a render, a truth query) sees it before or after a change, never half of one; `snapshot()` pins it
+for a reader that asks several questions.
+
 Frames: world x east, y north, z up, metres; the world is centred on the origin.
 """
 from __future__ import annotations
 
+import copy
 import math
+import threading
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -21,11 +31,22 @@ from .grid import GridSpec, bilinear, remap_bilinear
 from .lighting import in_sunlight
 from .mesh import TriangleSurface, grid_surface_parts
 from .noise import DetailTexture
-from .rocks import ROCK_TABLE_DTYPE, RockMeshes, place_rocks, rock_table
+from .obstacles import Obstacle, astronaut_obstacle, inside_convex, rock_obstacle
+from .rocks import ROCK_REACH, ROCK_TABLE_DTYPE, RockMeshes, place_rocks, rock_table
 from .rtin import extract_triangles, vertex_errors
 from .terrain import ground_heights
 
 __all__ = ["World", "WorldConfig", "Sun"]
+
+class _Truth(NamedTuple):
+    """What the world is at one instant; replaced whole, never changed in place."""
+
+    surface: TriangleSurface
+    rock_of_triangle: np.ndarray
+    rocks: np.ndarray
+    heights: np.ndarray
+    obstacles: tuple[Obstacle, ...]
+
 
 MESH_BLOCK_CELLS = 256       # RTIN root block: the largest triangle leg, 2.56 m at 1 cm cells
 FILE_FORMAT = "rvs-sim-world/1"
@@ -48,9 +69,11 @@ class World:
         heights: float32 heights with rocks: where a rock stands above the ground grid, the height of
             its surface (exact, from the rock meshes), else `ground` (within mesh_tolerance_m of the
             ground mesh).
+            Added obstacles count as rocks here (the maximum of their surface and what was there).
         albedo_grid: float32 albedo of the regolith per grid point (rocks have their own, see albedo_at).
-        rocks: structured array, one row per rock (see rocks.ROCK_TABLE_DTYPE).
-        surface: the truth triangles, ground first, then rocks (TriangleSurface).
+        rocks: structured array, one row per rock (see rocks.ROCK_TABLE_DTYPE): the world's own, then
+            one per added obstacle in the order of `obstacles()`.
+        surface: the truth triangles, ground first, then rocks, then added obstacles (TriangleSurface).
         rock_of_triangle: rock index of each surface triangle, -1 for ground.
     """
 
@@ -60,12 +83,163 @@ class World:
         self.config = config
         self.sun = config.sun
         self.grid = grid
-        self.ground, self.heights, self.albedo_grid, self.rocks = ground, heights, albedo_grid, rocks
+        self.ground, self.albedo_grid = ground, albedo_grid
         self.ground_triangles, self.rock_meshes = ground_triangles, rock_meshes
-        self.surface, self.rock_of_triangle = _truth_surface(grid, ground, ground_triangles, rock_meshes)
+        surface, rock_of_triangle = _truth_surface(grid, ground, ground_triangles, rock_meshes)
+        self._built = _Truth(surface, rock_of_triangle, rocks, heights, ())
+        self._state = self._built
+        self._changing = threading.Lock()    # one change at a time; readers never wait
+        self._next_id = 1
+        self._frozen = False
         streams = _streams(config.seed)
         self._detail = DetailTexture(streams["detail"])
         self._rock_texture = albedo_model.RockTexture(streams["rock_texture"], config.albedo.rock_contrast)
+
+    # ----------------------------------------------------------------------------- the state
+    @property
+    def surface(self) -> TriangleSurface:
+        return self._state.surface
+
+    @property
+    def rock_of_triangle(self) -> np.ndarray:
+        return self._state.rock_of_triangle
+
+    @property
+    def rocks(self) -> np.ndarray:
+        return self._state.rocks
+
+    @property
+    def heights(self) -> np.ndarray:
+        return self._state.heights
+
+    def snapshot(self) -> "World":
+        """This world as it is now, for a reader asking several questions (a render): it shares every
+        array and does not see later additions or removals. It cannot be changed itself."""
+        frozen = copy.copy(self)   # one reference to the state is copied: atomic
+        frozen._frozen = True
+        return frozen
+
+    # ----------------------------------------------------------------------------- added obstacles
+    def add_rock(self, x: float, y: float, height: float = 0.2, diameter: float | None = None,
+                 seed: int | None = None, keep_clear: np.ndarray | None = None) -> int:
+        """Drop a rock no map knew at (x, y): its highest point `height` above the rock-free ground,
+        `diameter` (default 1.5 x height) across its body, shaped like the world's own rocks (seeded by
+        `seed`, default its id). Returns its id. Raises ValueError if it would reach off the terrain
+        or onto `keep_clear` (a convex polygon (K, 2) in world x, y, counter-clockwise)."""
+        with self._changing:
+            obstacle_id = self._new_id()
+            diameter = 1.5 * height if diameter is None else diameter
+            if height <= 0 or diameter <= 0:
+                raise ValueError(f"a rock needs a positive height and diameter, not {height:g} and {diameter:g} m")
+            self._check_reach(x, y, ROCK_REACH * diameter, "the rock")
+            obstacle = rock_obstacle(obstacle_id, x, y, height, diameter, obstacle_id if seed is None else seed,
+                                     self.config.rocks, self.grid, self.ground)
+            self._commit(self._state.obstacles + (self._placed(obstacle, keep_clear, "the rock"),))
+        return obstacle_id
+
+    def add_astronaut(self, x: float, y: float, heading: float = 0.0, height: float = 1.8, width: float = 0.5,
+                      depth: float = 0.3, keep_clear: np.ndarray | None = None) -> int:
+        """Stand a person at (x, y), facing `heading` (radians CCW from east): an upright body `width`
+        across and `depth` deep with a head on top, `height` above the ground. Returns its id."""
+        with self._changing:
+            obstacle_id = self._new_id()
+            obstacle = self._astronaut(obstacle_id, x, y, heading, height, width, depth)
+            self._commit(self._state.obstacles + (self._placed(obstacle, keep_clear, "the astronaut"),))
+        return obstacle_id
+
+    def move_obstacle(self, obstacle_id: int, x: float, y: float, heading: float | None = None,
+                      keep_clear: np.ndarray | None = None) -> None:
+        """Put an added astronaut elsewhere (a walk's step), keeping its id and size."""
+        with self._changing:
+            old = self._obstacle(obstacle_id)
+            if old.kind != "astronaut":
+                raise ValueError(f"obstacle {obstacle_id} is a {old.kind}; only an astronaut moves")
+            heading = old.heading if heading is None else heading
+            new = self._astronaut(obstacle_id, x, y, heading, old.height, old.size["width_m"], old.size["depth_m"])
+            self._commit(tuple(self._placed(new, keep_clear, "the astronaut") if o.id == obstacle_id else o
+                               for o in self._state.obstacles))
+
+    def remove_obstacle(self, obstacle_id: int) -> None:
+        """Take an added obstacle away: surface, rock row and heights are as if it had never been."""
+        with self._changing:
+            self._obstacle(obstacle_id)
+            self._commit(tuple(o for o in self._state.obstacles if o.id != obstacle_id))
+
+    def clear_obstacles(self, kind: str | None = None) -> list[int]:
+        """Take away every added obstacle (of `kind` only, if given); returns their ids."""
+        with self._changing:
+            gone = [o.id for o in self._state.obstacles if kind is None or o.kind == kind]
+            self._commit(tuple(o for o in self._state.obstacles if o.id not in gone))
+        return gone
+
+    def obstacles(self) -> list[dict]:
+        """The added obstacles, for truth records: id, kind, x, y, heading_rad, height_m, diameter_m
+        (rock) or width_m and depth_m (astronaut), seed, rock (its row in `rocks`), albedo, area_m2
+        (where it tops the ground) and footprint (world x, y of an outline around it)."""
+        state = self._state
+        first = len(state.rocks) - len(state.obstacles)
+        return [o.record(first + i) for i, o in enumerate(state.obstacles)]
+
+    def _new_id(self) -> int:
+        """The id the next added obstacle gets (taken by _commit, so a refused one takes none)."""
+        if self._frozen:
+            raise RuntimeError("a world snapshot cannot be changed; change the world it was taken of")
+        return self._next_id
+
+    def _obstacle(self, obstacle_id: int) -> Obstacle:
+        if self._frozen:
+            raise RuntimeError("a world snapshot cannot be changed; change the world it was taken of")
+        for obstacle in self._state.obstacles:
+            if obstacle.id == obstacle_id:
+                return obstacle
+        there = ", ".join(str(o.id) for o in self._state.obstacles) or "none"
+        raise KeyError(f"no added obstacle {obstacle_id} (there are: {there})")
+
+    def _astronaut(self, obstacle_id: int, x, y, heading, height, width, depth) -> Obstacle:
+        if not (0 < height and 0 < width and 0 < depth):
+            raise ValueError(f"an astronaut needs a positive size, not {height:g} x {width:g} x {depth:g} m")
+        self._check_reach(x, y, math.hypot(width, depth) / 2, "the astronaut")
+        return astronaut_obstacle(obstacle_id, x, y, heading, self.grid, self.ground, height, width, depth)
+
+    def _check_reach(self, x: float, y: float, reach: float, what: str) -> None:
+        x0, x1, y0, y1 = self.bounds
+        if not (x0 + reach < x < x1 - reach and y0 + reach < y < y1 - reach):
+            raise ValueError(f"{what} at ({x:.3f}, {y:.3f}) would reach {reach:.3f} m from there, off the "
+                             f"world: its bounds are x {x0:g}..{x1:g}, y {y0:g}..{y1:g}")
+
+    def _placed(self, obstacle: Obstacle, keep_clear: np.ndarray | None, what: str) -> Obstacle:
+        """The obstacle, if it stays off the terrain's edge and off `keep_clear`; else ValueError."""
+        rows, cols = np.divmod(obstacle.points, self.grid.cols + 1)
+        xy = np.column_stack([self.grid.x_of(cols), self.grid.y_of(rows)])
+        x0, x1, y0, y1 = self.bounds
+        if not (x0 < obstacle.footprint[:, 0].min() and obstacle.footprint[:, 0].max() < x1
+                and y0 < obstacle.footprint[:, 1].min() and obstacle.footprint[:, 1].max() < y1):
+            raise ValueError(f"{what} at ({obstacle.x:.3f}, {obstacle.y:.3f}) would reach off the world: its "
+                             f"bounds are x {x0:g}..{x1:g}, y {y0:g}..{y1:g}")
+        if keep_clear is not None and len(xy) and inside_convex(xy, np.asarray(keep_clear, np.float64)).any():
+            raise ValueError(f"{what} at ({obstacle.x:.3f}, {obstacle.y:.3f}) would land on the rover")
+        return obstacle
+
+    def _commit(self, obstacles: tuple[Obstacle, ...]) -> None:
+        """Make the state with these added obstacles (from the built world's, so a removal restores
+        it exactly) and put it in place with one assignment."""
+        built = self._built
+        self._next_id = max([self._next_id - 1] + [o.id for o in obstacles]) + 1
+        if not obstacles:
+            self._state = built
+            return
+        heights = built.heights.copy()
+        flat = heights.reshape(-1)
+        offsets = np.cumsum([0] + [len(o.vertices) for o in obstacles[:-1]])
+        for obstacle in obstacles:
+            flat[obstacle.points] = np.maximum(flat[obstacle.points], obstacle.tops)
+        first = len(built.rocks)
+        surface = built.surface.with_dynamic(np.concatenate([o.vertices for o in obstacles]),
+                                             np.concatenate([o.triangles + k for o, k in zip(obstacles, offsets)]))
+        rock_of_triangle = np.concatenate([built.rock_of_triangle] + [np.full(len(o.triangles), first + i, np.int32)
+                                                                      for i, o in enumerate(obstacles)])
+        rocks = np.concatenate([built.rocks, np.array([o.row for o in obstacles], dtype=ROCK_TABLE_DTYPE)])
+        self._state = _Truth(surface, rock_of_triangle, rocks, heights, obstacles)
 
     # ----------------------------------------------------------------------------- building
     @classmethod
@@ -90,6 +264,10 @@ class World:
         path = Path(path)
         if path.suffix != ".npz":
             path = path.with_name(path.name + ".npz")
+        if self._state.obstacles:
+            ids = ", ".join(str(o.id) for o in self._state.obstacles)
+            raise ValueError(f"the world has added obstacles ({ids}); a world file holds the built world only: "
+                             f"clear_obstacles() first, or add them again after World.load")
         m = self.rock_meshes
         np.savez(path, format=np.array(FILE_FORMAT), config=np.array(self.config.model_dump_json()),
                  sun=np.array(self.sun.model_dump_json()), ground=self.ground, heights=self.heights,
@@ -121,8 +299,9 @@ class World:
     def height_at(self, x, y) -> np.ndarray:
         """Exact height of the truth surface at world (x, y) (arrays broadcast); NaN off the terrain."""
         x, y = np.broadcast_arrays(np.asarray(x, np.float64), np.asarray(y, np.float64))
-        triangle = self._triangle_under(x, y)
-        return self.surface.height_on(triangle, x.ravel(), y.ravel()).reshape(x.shape)
+        surface = self.surface
+        triangle = self._triangle_under(x, y, surface)
+        return surface.height_on(triangle, x.ravel(), y.ravel()).reshape(x.shape)
 
     def ground_height_at(self, x, y) -> np.ndarray:
         """Height of the rock-free ground at (x, y): the reference rock protrusion is measured from
@@ -137,14 +316,16 @@ class World:
     def rock_at(self, x, y) -> np.ndarray:
         """Index into `rocks` of the rock that is the topmost surface at (x, y); -1 for ground."""
         x, y = np.broadcast_arrays(np.asarray(x, np.float64), np.asarray(y, np.float64))
-        triangle = self._triangle_under(x, y)
-        return np.where(triangle >= 0, self.rock_of_triangle[np.maximum(triangle, 0)], -1).reshape(x.shape)
+        state = self._state
+        triangle = self._triangle_under(x, y, state.surface)
+        return np.where(triangle >= 0, state.rock_of_triangle[np.maximum(triangle, 0)], -1).reshape(x.shape)
 
     def normal_at(self, x, y) -> np.ndarray:
         """Unit upward normal (..., 3) of the truth surface at (x, y); NaN off the terrain."""
         x, y = np.broadcast_arrays(np.asarray(x, np.float64), np.asarray(y, np.float64))
-        triangle = self._triangle_under(x, y)
-        normals = self.surface.face_normals[np.maximum(triangle, 0)].astype(np.float64)
+        surface = self.surface
+        triangle = self._triangle_under(x, y, surface)
+        normals = surface.face_normals[np.maximum(triangle, 0)].astype(np.float64)
         normals[triangle < 0] = np.nan
         return normals.reshape(*x.shape, 3)
 
@@ -167,20 +348,22 @@ class World:
     def albedo_at(self, x, y) -> np.ndarray:
         """Albedo of the topmost surface at (x, y); NaN off the terrain."""
         x, y = np.broadcast_arrays(np.asarray(x, np.float64), np.asarray(y, np.float64))
-        triangle = self._triangle_under(x, y)
-        z = self.surface.height_on(triangle, x.ravel(), y.ravel())
+        state = self._state
+        triangle = self._triangle_under(x, y, state.surface)
+        z = state.surface.height_on(triangle, x.ravel(), y.ravel())
         points = np.stack([x.ravel(), y.ravel(), z], axis=1)
-        rock = np.where(triangle >= 0, self.rock_of_triangle[np.maximum(triangle, 0)], -1)
-        albedo = self.albedo_of(points, rock)
+        rock = np.where(triangle >= 0, state.rock_of_triangle[np.maximum(triangle, 0)], -1)
+        albedo = self.albedo_of(points, rock, state.rocks)
         return np.where(triangle >= 0, albedo, np.float32(np.nan)).reshape(x.shape)
 
-    def albedo_of(self, points: np.ndarray, rock: np.ndarray) -> np.ndarray:
+    def albedo_of(self, points: np.ndarray, rock: np.ndarray, rocks: np.ndarray | None = None) -> np.ndarray:
         """Albedo (float32) at surface points (n, 3) lying on rock `rock` (-1: on the ground).
 
         Ground: the regolith grid interpolated, times sub-centimetre detail. Rocks: the rock's own
         albedo times a 3-D mottling. The renderer uses exactly this, so it is the albedo truth of
-        every image.
+        every image. `rocks`: the rock table `rock` indexes (default the current one).
         """
+        rocks = self.rocks if rocks is None else rocks
         albedo = np.empty(len(points), dtype=np.float32)
         on_ground = rock < 0
         x, y = points[on_ground, 0], points[on_ground, 1]
@@ -188,7 +371,7 @@ class World:
         detail = np.exp(np.float32(self.config.albedo.detail_contrast) * self._detail(x, y))
         albedo[on_ground] = remap_bilinear(self.albedo_grid, col, row) * detail
         on_rock = ~on_ground
-        albedo[on_rock] = self.rocks["albedo"][rock[on_rock]] * self._rock_texture(points[on_rock])
+        albedo[on_rock] = rocks["albedo"][rock[on_rock]] * self._rock_texture(points[on_rock])
         return albedo
 
     def in_sunlight(self, points: np.ndarray, normals: np.ndarray, sun: Sun | None = None) -> np.ndarray:
@@ -217,7 +400,9 @@ class World:
         """
         if cell < self.grid.cell - 1e-12:
             raise ValueError(f"cell {cell} m is finer than the world's grid ({self.grid.cell} m)")
-        return self._block_max(self._protrusion, cell, x_range, y_range) > step_height
+        heights = self.heights
+        return self._block_max(lambda rows, cols: heights[rows, cols] - self.ground[rows, cols], cell, x_range,
+                               y_range) > step_height
 
     def protrusion(self) -> np.ndarray:
         """Rock protrusion above the rock-free ground at every grid point (float32, 0 off rocks)."""
@@ -225,21 +410,19 @@ class World:
 
     def rock_cover(self) -> float:
         """Measured cumulative fractional area of rocks: the share of grid points a rock tops."""
-        return float(np.count_nonzero(self.heights > self.ground)) / self.heights.size
+        heights = self.heights
+        return float(np.count_nonzero(heights > self.ground)) / heights.size
 
     # ----------------------------------------------------------------------------- helpers
-    def _triangle_under(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    def _triangle_under(self, x: np.ndarray, y: np.ndarray, surface: TriangleSurface) -> np.ndarray:
         """Topmost triangle over each point; -1 off the terrain. Rays on the terrain's very edge
         are nudged a micrometre inward, where they cannot slip past the last triangle."""
         x, y = x.ravel(), y.ravel()
         inside = self.grid.contains(x, y)
         edge = 1e-6
-        triangle = self.surface.triangle_under(np.clip(x, self.grid.x_min + edge, self.grid.x_max - edge),
+        triangle = surface.triangle_under(np.clip(x, self.grid.x_min + edge, self.grid.x_max - edge),
                                                np.clip(y, self.grid.y_min + edge, self.grid.y_max - edge))
         return np.where(inside, triangle, -1)
-
-    def _protrusion(self, rows: slice, cols: slice) -> np.ndarray:
-        return self.heights[rows, cols] - self.ground[rows, cols]
 
     def _block_max(self, values_of, cell: float, x_range, y_range) -> np.ndarray:
         """Max of a per-grid-point quantity over each output cell; -inf where a cell has no point."""

@@ -8,14 +8,19 @@ of a real fault, so what a job does about it is what it would do on the test bed
 
 `sun` moves the simulated sun (the image-based route paper's change of light); with real devices it
 is `503 device`, since the sun is not ours to move.
+
+`astronaut` and `sim-rock` put obstacles no map knew into the world (drivers/sim/obstacles.py): a
+standing or walking person, dropped rocks. Both are immediate, so a rock can fall in front of a
+driving rover; a world still being built is waited for off the event loop.
 """
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any, Literal
+import asyncio
+from typing import TYPE_CHECKING, Any, Callable, Literal
 
 from pydantic import Field
 
-from rvs_server.config import CommandConfig
+from rvs_server.config import CommandConfig, Point
 from rvs_server.devices import FAULT_DEVICES, Sun
 from rvs_server.dispatch import Call, Module
 from rvs_server.protocol import BadRequest, DeviceError, WrongMode
@@ -24,7 +29,7 @@ if TYPE_CHECKING:
     from rvs_server.host import Host
     from rvs_server.jobs import JobContext
 
-module = Module("simulation", summary="the simulated world: injected device faults")
+module = Module("simulation", summary="the simulated world: injected device faults, the sun, obstacles no map knew")
 
 FaultDevice = Literal["ptu", "tof", "camera-left", "camera-right", "trigger"]
 assert set(FaultDevice.__args__) == set(FAULT_DEVICES)  # one list of devices, drivers/sim/faults.py's
@@ -109,3 +114,109 @@ def sun(ctx: JobContext, cfg: SunConfig) -> dict[str, Any]:
                     ambient=old.ambient)
     return {"azimuth": cfg.azimuth, "elevation": cfg.elevation,
             "was": f"{old.azimuth_deg:g},{old.elevation_deg:g}"}
+
+
+# ---------------------------------------------------------------------------------------------
+# Obstacles no map knew: astronaut, sim-rock
+
+
+def _simulated(command: str):
+    def check(server: Host, cfg: Any) -> None:
+        if not server.devices.simulated:
+            raise WrongMode(f"{command}: the devices are real; obstacles are put into the simulated world only")
+    return check
+
+
+async def _on_world(call: Call, work: Callable[[Any], Any]) -> Any:
+    """Run `work(testbed)` once the world is built, in a worker thread: the event loop never waits."""
+    testbed = call.server.devices.testbed
+    loop = asyncio.get_running_loop()
+    await loop.run_in_executor(None, testbed.wait_for_build)
+    return await loop.run_in_executor(None, work, testbed)
+
+
+def _f(value: float) -> str:
+    return f"{value:.3f}"
+
+
+class AstronautConfig(CommandConfig):
+    at: Point | None = Field(None, description="where the person stands (or starts walking), X,Y in the world "
+                             "frame, metres")
+    to: Point | None = Field(None, description="walk from --at to X,Y and back, over and over")
+    speed: float = Field(0.5, gt=0, le=3.0, description="walking speed, metres per second of simulation time")
+    remove: bool = Field(False, description="take the person away")
+
+
+def _validate_astronaut(server: Host, cfg: AstronautConfig) -> None:
+    _simulated("astronaut")(server, cfg)
+    if cfg.remove:
+        if cfg.at is not None or cfg.to is not None:
+            raise BadRequest("astronaut: --remove takes no --at or --to (astronaut --at X,Y puts one back)")
+    elif cfg.at is None:
+        raise BadRequest("astronaut: give --at X,Y (and --to X,Y [--speed M_PER_S] to walk), or --remove")
+
+
+@module.immediate("astronaut", AstronautConfig, validate=_validate_astronaut)
+def astronaut(call: Call, cfg: AstronautConfig):
+    """Simulated world: a person standing at --at (or walking to --to and back), 1.8 m tall; --remove."""
+    def work(testbed) -> dict[str, Any]:
+        if cfg.remove:
+            if testbed.astronaut_id is None:
+                raise WrongMode("astronaut: there is no astronaut in the world to remove")
+            gone = testbed.astronaut_id
+            testbed.remove_obstacle(gone)
+            return {"removed": gone}
+        try:
+            record = testbed.place_astronaut(*cfg.at, to=cfg.to, speed=cfg.speed)
+        except ValueError as exc:
+            raise BadRequest(f"astronaut: {exc}") from None
+        reply = {"astronaut": record["id"], "x": _f(record["x"]), "y": _f(record["y"]),
+                 "height": _f(record["height_m"])}
+        if cfg.to is not None:
+            reply.update(to=f"{_f(cfg.to[0])},{_f(cfg.to[1])}", speed=_f(cfg.speed))
+        return reply
+    return _on_world(call, work)
+
+
+class SimRockConfig(CommandConfig):
+    at: Point | None = Field(None, description="where the rock falls, X,Y in the world frame, metres")
+    height: float = Field(0.2, ge=0.02, le=1.0, description="how far it stands above the ground, metres")
+    diameter: float | None = Field(None, ge=0.05, le=2.0, description="across its body, metres; default 1.5 x "
+                                   "height (at least 0.05)")
+    seed: int | None = Field(None, ge=0, le=2**31 - 1, description="its shape and albedo; default its id")
+    remove: int | None = Field(None, ge=1, description="take away the dropped rock with this id")
+    clear: bool = Field(False, description="take away every dropped rock")
+
+
+def _validate_rock(server: Host, cfg: SimRockConfig) -> None:
+    _simulated("sim-rock")(server, cfg)
+    given = [name for name, on in (("--at", cfg.at is not None), ("--remove", cfg.remove is not None),
+                                   ("--clear", cfg.clear)) if on]
+    if len(given) != 1:
+        what = "none of them" if not given else " and ".join(given)
+        raise BadRequest(f"sim-rock: give one of --at X,Y [--height M] [--diameter M] [--seed N], --remove ID "
+                         f"or --clear, not {what}")
+
+
+@module.immediate("sim-rock", SimRockConfig, validate=_validate_rock)
+def sim_rock(call: Call, cfg: SimRockConfig):
+    """Simulated world: drop a rock no map knew at --at (--height, --diameter, --seed); --remove ID; --clear."""
+    def work(testbed) -> dict[str, Any]:
+        if cfg.clear:
+            return {"removed": len(testbed.clear_rocks())}
+        if cfg.remove is not None:
+            rocks = [o["id"] for o in testbed.obstacles() if o["kind"] == "rock"]
+            if cfg.remove not in rocks:
+                there = ", ".join(map(str, rocks)) or "none"
+                raise BadRequest(f"sim-rock: --remove = {cfg.remove}: no dropped rock has that id (dropped rocks: "
+                                 f"{there})")
+            testbed.remove_obstacle(cfg.remove)
+            return {"removed": cfg.remove}
+        diameter = cfg.diameter if cfg.diameter is not None else min(2.0, max(0.05, 1.5 * cfg.height))
+        try:
+            record = testbed.drop_rock(*cfg.at, cfg.height, diameter, cfg.seed)
+        except ValueError as exc:
+            raise BadRequest(f"sim-rock: --at = {cfg.at[0]:g},{cfg.at[1]:g}: {exc}") from None
+        return {"rock": record["id"], "x": _f(record["x"]), "y": _f(record["y"]), "height": _f(record["height_m"]),
+                "diameter": _f(record["diameter_m"])}
+    return _on_world(call, work)
