@@ -9,6 +9,8 @@ interpreter's own first few tens of milliseconds remain uncovered.
 """
 from __future__ import annotations
 
+import logging
+import os
 import signal
 import sys
 
@@ -16,7 +18,14 @@ import sys
 def main(argv: list[str] | None = None) -> int:
     signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
     from .app import main as run_server
-    return run_server(argv)
+    code = run_server(argv)
+    # The exit status is the server's own. The interpreter's finalisation runs C++ static destructors
+    # (Open3D reports a tensor an interrupted ray cast left behind) that turned a clean quit after a
+    # break into exit status 1; everything is written and closed by now, so skip them.
+    logging.shutdown()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)
 
 
 if __name__ == "__main__":

@@ -1,0 +1,194 @@
+"""hazard-start / hazard-stop against a real server on the simulated test bed: the activity's replies
+and its 409s, its events and product, what it does beside a job (the job's sensors make its frames
+unknown, never the job fail), break leaves it running and quit stops it; and it rides along on
+route-follow and navigate over clean ground without stopping either."""
+from __future__ import annotations
+
+import csv
+import json
+import math
+import re
+import time
+import tomllib
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from drivers.sim.config import WorldConfig
+from drivers.sim.world import World
+
+from conftest import SMALL_WORLD, pairs
+
+# 20 m across without craters, as the route tests: the lanes below are picked on its truth.
+WORLD = """seed = 3
+size_m = [20.0, 20.0]
+[rocks]
+cover = 0.07
+[craters]
+count = 0
+"""
+EVENT = re.compile(r"^\* EVENT hazard seq=(\d+) state=(clear|hazard|unknown) distance=(\S+) x=(\S+) y=(\S+) "
+                   r"latency_ms=(\S+)")
+
+
+def product_dir(server, reply: str) -> Path:
+    return server.data_dir / "products" / pairs(reply)["product"]
+
+
+def hazard_events(client) -> list[re.Match]:
+    return [m for m in (EVENT.match(e) for e in client.events) if m]
+
+
+@pytest.fixture(scope="module")
+def small_world() -> World:
+    return World.build(WorldConfig(**tomllib.loads(SMALL_WORLD)))
+
+
+def test_start_stop_status_events_and_the_409s(server, small_world):
+    with server.connect() as c:
+        assert pairs(c.command("status"))["hazard"] == "off" and pairs(c.command("status"))["track"] == "off"
+        stop = c.command("hazard-stop")
+        assert "ERR 409 wrong-mode" in stop and "no hazard activity is running" in stop
+        assert "ERR 400" in c.command("hazard-start --rate 0") and "--rate" in c.command("hazard-start --rate 0")
+        assert "ERR 400" in c.command("hazard-start --sensor lidar")
+        assert "ERR 400" in c.command("hazard-start --stop-distance 9")
+        assert pairs(c.command("status"))["hazard"] == "off"          # refused starts change nothing
+        c.command("subscribe hazard")
+        started = c.command("hazard-start --rate 4 --stop-distance 0.6")
+        assert pairs(started) == {"activity": "hazard", "sensor": "tof", "rate": "4", "stop_distance": "0.6"}, started
+        again = c.command("hazard-start")
+        assert "ERR 409 wrong-mode" in again and "already running" in again
+        assert pairs(c.command("status"))["hazard"] == "on"
+        deadline = time.monotonic() + 60
+        while len(hazard_events(c)) < 5 and time.monotonic() < deadline:
+            c.command("status")
+        events = hazard_events(c)
+        assert [int(m.group(1)) for m in events[:5]] == [1, 2, 3, 4, 5]
+        # A 30 cm rock lies 2.1-2.7 m ahead of the start: every frame finds it where the truth has it.
+        assert all(m.group(2) == "hazard" for m in events), [m.group(0) for m in events]
+        for m in events:
+            x, y = float(m.group(4)), float(m.group(5))
+            near = np.mgrid[x - 0.1:x + 0.1:0.01, y - 0.1:y + 0.1:0.01]
+            assert np.nanmax(small_world.protrusion_at(near[0], near[1])) > 0.10, m.group(0)
+            assert float(m.group(3)) == pytest.approx(x - 0.275, abs=0.1)   # from the front bumper, heading east
+        assert all(float(m.group(6)) < 100 for m in events)
+        reply = c.command("hazard-stop", timeout=60)
+        summary = pairs(reply)
+        assert summary["activity"] == "hazard" and int(summary["frames"]) >= 5 and summary["stops"] == "0", reply
+        assert pairs(c.command("status"))["hazard"] == "off"
+    product = product_dir(server, reply)
+    rows = list(csv.DictReader(open(product / "frames.csv")))
+    assert len(rows) == int(summary["frames"]) and {r["state"] for r in rows} == {"hazard"}
+    assert all(float(r["tilt_deg"]) == pytest.approx(-40.0, abs=0.1) for r in rows)
+    assert (product / "corridor.png").stat().st_size > 1000 and (product / "stops.csv").exists()
+    manifest = json.loads((product / "product.json").read_text())
+    assert manifest["status"] == "complete" and manifest["summary"]["states"]["hazard"] == len(rows)
+
+
+def test_beside_a_job_break_leaves_it_and_quit_stops_it(server):
+    with server.connect(timeout=600) as c:
+        c.command("subscribe hazard")
+        assert " OK " in c.command("hazard-start")
+        c.send("@map dem-update-tof --pan -20:20")
+        # Immediate while the job runs: stop and start again, not 409 busy.
+        time.sleep(1.0)
+        assert " OK " in c.command("hazard-stop", timeout=60)
+        assert " OK " in c.command("hazard-start")
+        reply, _ = c.reply("map", timeout=600)
+        assert " OK " in reply, reply                                 # the job never fails for the activity
+        unknown = [m for m in hazard_events(c) if m.group(2) == "unknown"]
+        assert unknown and all(m.group(3) == "none" for m in unknown)
+        assert any("reason=\"a job holds the" in e for e in c.events), c.events[-5:]
+        # break interrupts the job, not the activity.
+        c.send("@map2 dem-full-tof")
+        time.sleep(1.0)
+        c.command("break")
+        reply, _ = c.reply("map2", timeout=300)
+        assert "ERR 499" in reply, reply
+        status = pairs(c.command("status"))
+        assert status["hazard"] == "on" and status["mode"] == "break"
+        frames = len(hazard_events(c))
+        deadline = time.monotonic() + 60
+        while len(hazard_events(c)) < frames + 3 and time.monotonic() < deadline:
+            c.command("status")
+        assert len(hazard_events(c)) >= frames + 3                    # the frames go on with the job gone
+        assert " OK " in c.command("quit", timeout=120)
+    assert server.proc.wait(timeout=60) == 0
+    products = sorted((server.data_dir / "products").glob("hazard-start-*"))
+    assert len(products) == 2                                         # the one stopped by hand, the one quit stopped
+    assert all(json.loads((p / "product.json").read_text())["status"] == "complete" for p in products)
+
+
+def clear_lane(world: World, start: tuple[float, float], length: float, half_width: float,
+               below: float = 0.06) -> float:
+    """A heading (degrees) whose straight lane from start is free of rocks taller than `below`."""
+    grid = world.grid
+    for heading in np.arange(0.0, 360.0, 5.0):
+        c, s = math.cos(math.radians(heading)), math.sin(math.radians(heading))
+        along = np.arange(-0.4, length, 0.02)
+        across = np.arange(-half_width, half_width + 1e-9, 0.02)
+        a, b = np.meshgrid(along, across)
+        x, y = start[0] + a * c - b * s, start[1] + a * s + b * c
+        inside = (np.abs(x) < grid.x_max - 1) & (np.abs(y) < grid.y_max - 1)
+        if inside.all() and np.nanmax(world.protrusion_at(x, y)) < below:
+            return float(heading)
+    raise AssertionError("no clear lane in the test world")
+
+
+@pytest.fixture(scope="module")
+def wide_world() -> World:
+    return World.build(WorldConfig(**tomllib.loads(WORLD)))
+
+
+def test_route_follow_and_navigate_beside_it_on_clean_ground(server_factory, wide_world):
+    heading = clear_lane(wide_world, (0.0, 0.0), 4.5, 0.55)
+    server = server_factory(configs={"world.toml": WORLD})
+    with server.connect(timeout=600) as c:
+        c.command("subscribe hazard")
+        assert " OK " in c.command("hazard-start")
+        assert " OK " in c.command(f"drive --turn {heading if heading <= 180 else heading - 360:g}", timeout=300)
+        assert " OK " in c.command("route-record start --name lane", timeout=300)
+        for _ in range(2):
+            assert " OK " in c.command("drive --forward 1.5", timeout=300)
+        assert " OK " in c.command("route-record stop", timeout=300)
+        followed = c.command("route-follow --name lane --reverse", timeout=600)
+        assert " OK " in followed, followed
+        goal = (3.2 * math.cos(math.radians(heading)), 3.2 * math.sin(math.radians(heading)))
+        arrived = c.command(f"navigate --to {goal[0]:.2f},{goal[1]:.2f} --tolerance 0.3 --max-steps 3", timeout=900)
+        assert " OK " in arrived, arrived
+        reply = c.command("hazard-stop", timeout=60)
+    summary = pairs(reply)
+    assert summary["stops"] == "0", reply
+    rows = list(csv.DictReader(open(product_dir(server, reply) / "frames.csv")))
+    states = {s: sum(r["state"] == s for r in rows) for s in ("clear", "hazard", "unknown")}
+    # navigate's panoramas hold the PTU and the TOF: those frames are unknown; the drives are guarded.
+    assert states["clear"] > 20 and states["unknown"] > 0, states
+    moved = {(r["est_x"], r["est_y"]) for r in rows if r["state"] == "clear"}
+    assert len(moved) > 10                                            # frames were taken along the way
+
+
+def test_a_drive_stops_short_of_a_dropped_rock_and_of_a_person(server_factory, wide_world):
+    heading = clear_lane(wide_world, (0.0, 0.0), 4.5, 0.55)
+    c_, s_ = math.cos(math.radians(heading)), math.sin(math.radians(heading))
+    server = server_factory(configs={"world.toml": WORLD})
+    with server.connect(timeout=600) as c:
+        assert " OK " in c.command(f"drive --turn {heading if heading <= 180 else heading - 360:g}", timeout=300)
+        # Without the activity, a drive over the rock's place is not stopped (the maps never saw it).
+        assert " OK " in c.command("hazard-start --stop-distance 0.5")
+        rock = pairs(c.command(f"sim-rock --at {2.6 * c_:.3f},{2.6 * s_:.3f} --height 0.15"))
+        stopped = c.command("drive --forward 4", timeout=300)
+        assert "ERR 400 bad-request drive stopped: hazard: step" in stopped, stopped
+        assert " OK " in c.command(f"sim-rock --remove {rock['rock']}")
+        assert " OK " in c.command("drive --turn 180", timeout=300)
+        assert " OK " in c.command("drive --forward 1.0", timeout=300)   # back along the clear lane
+        assert " OK " in c.command("drive --turn 180", timeout=300)
+        c.command(f"astronaut --at {2.8 * c_:.3f},{2.8 * s_:.3f}")
+        stopped = c.command("drive --forward 4", timeout=300)
+        assert "drive stopped: hazard:" in stopped, stopped
+        reply = c.command("hazard-stop", timeout=60)
+    assert pairs(reply)["stops"] == "2", reply
+    stops = list(csv.DictReader(open(product_dir(server, reply) / "stops.csv")))
+    for stop in stops:
+        # Stopped before contact, about the stop distance short of the obstacle.
+        assert stop["contacts_so_far"] == "0" and 0.2 < float(stop["true_clearance_m"]) < 0.75, stop
