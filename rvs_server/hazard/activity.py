@@ -94,8 +94,10 @@ class HazardActivity(Activity):
             pose = devices.rover.pose_estimate
             truth = devices.rover.true_pose()
             sim_s = self.server.clock.now()
-            points_camera, valid, camera_pose = self._grab(devices, pose, pan, tilt)
+            to_points = self._grab(devices, pose, pan, tilt)
             taken = time.perf_counter()
+        # The devices are given back before any processing: a job waits for the grab, never for this.
+        points_camera, valid, camera_pose = to_points()
         points = dem_tools.view_points(points_camera, valid, camera_pose)
         view = corridor_view(points, (pose.x, pose.y, pose.heading), self.params, 1)
         direction = self.guard.direction
@@ -129,24 +131,31 @@ class HazardActivity(Activity):
         return position
 
     def _grab(self, devices: Any, pose: RoverPose, pan: float, tilt: float):
-        """One frame's points in the camera frame, the pixels to trust, and the camera's pose."""
+        """Take one frame; gives the function that turns it into points in the camera frame, the
+        pixels to trust and the camera's pose (run once the devices are given back)."""
         pan_rad, tilt_rad = math.radians(pan), math.radians(tilt)
         if self.sensor == "tof":
             tof = devices.tof
             result = tof.grab(frames=1, min_confidence=self.min_confidence, settle_frames=0,
                               camera=tof.ready_driver())
-            points = result.frame.xyz()
-            valid = result.defined & (np.linalg.norm(np.nan_to_num(points, nan=np.inf), axis=-1) <= self.max_range_m)
-            return points, valid, camera_to_world(pose, self.mounts["tof"], pan_rad, tilt_rad)
+
+            def tof_points():
+                points = result.frame.xyz()
+                valid = result.defined & (np.linalg.norm(np.nan_to_num(points, nan=np.inf), axis=-1)
+                                          <= self.max_range_m)
+                return points, valid, camera_to_world(pose, self.mounts["tof"], pan_rad, tilt_rad)
+            return tof_points
         pair = devices.cameras.ready_driver()
         frames = pair.grab("both", timeout_s=devices.cameras.grab_timeout_s)
         left_pose = camera_to_world(pose, self.mounts["left"], pan_rad, tilt_rad)
         right_pose = camera_to_world(pose, self.mounts["right"], pan_rad, tilt_rad)
         rect, factor, config = self._rectification(devices, pair, left_pose, right_pose)
-        left, right = (_smaller(_grey(frames[role].image), factor) for role in ("left", "right"))
-        points, valid = stereo_points(left, right, rect, config)
-        valid &= points[..., 2] < self.settings.stereo_max_range_m
-        return points, valid, left_pose
+
+        def stereo_frame_points():
+            left, right = (_smaller(_grey(frames[role].image), factor) for role in ("left", "right"))
+            points, valid = stereo_points(left, right, rect, config)
+            return points, valid & (points[..., 2] < self.settings.stereo_max_range_m), left_pose
+        return stereo_frame_points
 
     def _rectification(self, devices: Any, pair: Any, left_pose: np.ndarray, right_pose: np.ndarray):
         """The pair's rectification at the hazard resolution: the mounts do not move, so once."""

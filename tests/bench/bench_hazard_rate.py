@@ -6,7 +6,8 @@
    activity's own _grab (drivers.sr4000.grab on the emulator, pan 0, tilt hazard.toml tof_tilt_deg), then
    view_points + corridor_view + HazardMemory.update + nearest, exactly as HazardActivity.frame does.
    Processing = everything after the emulator's frame is in hand (the xyz / range mask of _grab and the
-   pipeline); the activity's own latency_ms starts after _grab, so both are shown. The emulator's time
+   pipeline); the activity's own latency_ms starts once the frame is taken (the matching and the
+   xyz come after, with the devices given back), so the two differ only by the emulator's own work. The emulator's time
    per frame (the simulator's cost, not RVS's) is shown apart.
 2. The same through a real rvs-server at --sim-speed 1: hazard-start (TOF, 5 Hz) for ~20 s, the achieved
    rate and the events' latency_ms; then one full dem-update-tof on the same server and ground (wall
@@ -153,9 +154,10 @@ class Bench:
             for k in range(per_pose + warm):
                 self.grab_s.clear()
                 started = time.perf_counter()
-                points_camera, valid, camera_pose = activity._grab(devices, estimate, 0.0, activity.tilt_deg)
+                to_points = activity._grab(devices, estimate, 0.0, activity.tilt_deg)
                 taken = time.perf_counter()
                 # HazardActivity.frame after the devices are given back:
+                points_camera, valid, camera_pose = to_points()
                 points = dem_tools.view_points(points_camera, valid, camera_pose)
                 view = corridor_view(points, (estimate.x, estimate.y, estimate.heading), activity.params, 1)
                 activity.memory.update(view)
