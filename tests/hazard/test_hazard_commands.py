@@ -192,3 +192,32 @@ def test_a_drive_stops_short_of_a_dropped_rock_and_of_a_person(server_factory, w
     for stop in stops:
         # Stopped before contact, about the stop distance short of the obstacle.
         assert stop["contacts_so_far"] == "0" and 0.2 < float(stop["true_clearance_m"]) < 0.75, stop
+
+
+def test_navigate_maps_again_and_plans_round_a_rock_dropped_while_it_drives(server_factory, wide_world):
+    heading = clear_lane(wide_world, (0.0, 0.0), 4.5, 0.55)
+    c_, s_ = math.cos(math.radians(heading)), math.sin(math.radians(heading))
+    # Slower simulated time: the rock lands while the first leg has barely begun.
+    server = server_factory(configs={"world.toml": WORLD}, args=["--sim-speed", "10"])
+    with server.connect(timeout=900) as c:
+        assert " OK " in c.command("hazard-start")
+        goal = (4.0 * c_, 4.0 * s_)
+        c.send(f"@nav navigate --to {goal[0]:.2f},{goal[1]:.2f} --tolerance 0.3 --max-steps 6")
+        deadline = time.monotonic() + 600
+        while time.monotonic() < deadline:
+            line = c.read_line(timeout=600)
+            if line.startswith("* EVENT"):
+                continue
+            c.pending.append(line)
+            if line.startswith("nav PROGRESS") and "driving" in line:
+                break
+        dropped = c.command(f"sim-rock --at {1.9 * c_:.3f},{1.9 * s_:.3f} --height 0.2")
+        assert " OK " in dropped, dropped
+        reply, progress = c.reply("nav", timeout=900)
+        stop = c.command("hazard-stop", timeout=60)
+    assert " OK " in reply, reply
+    assert any("drive stopped: hazard" in p and "mapping again" in p for p in progress), progress
+    traverse = json.loads((product_dir(server, reply) / "traverse.json").read_text())
+    truth = json.loads((product_dir(server, reply) / "truth" / "traverse.json").read_text())
+    assert traverse["hazard_stops"] >= 1 and truth["contacts"] == 0, (traverse["hazard_stops"], truth["contacts"])
+    assert int(pairs(stop)["stops"]) >= 1
