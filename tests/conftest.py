@@ -174,6 +174,29 @@ diameter_range_m = [2.0, 3.0]
 """
 
 
+# 20 m across without craters: the routes' and the hazard guard's scenes (the forward camera sees ground,
+# not the world's edge, on every leg).
+WIDE_WORLD = """seed = 3
+size_m = [20.0, 20.0]
+[rocks]
+cover = 0.07
+[craters]
+count = 0
+"""
+
+
+def look_at(eye, target):
+    """Camera-to-world pose (OpenCV axes) at `eye` looking at `target`, image rows level."""
+    import numpy as np
+    eye, target = np.asarray(eye, float), np.asarray(target, float)
+    forward = (target - eye) / np.linalg.norm(target - eye)
+    right = np.cross(forward, [0.0, 0.0, 1.0])
+    right /= np.linalg.norm(right)
+    pose = np.eye(4)
+    pose[:3, 0], pose[:3, 1], pose[:3, 2], pose[:3, 3] = right, np.cross(forward, right), forward, eye
+    return pose
+
+
 def write_configs(config_dir: Path, extra: dict[str, str] | None = None) -> Path:
     """The repository's configs with a small world, optional files replaced, in a private directory."""
     shutil.copytree(REPO / "configs", config_dir, dirs_exist_ok=True)

@@ -18,16 +18,9 @@ import pytest
 from drivers.sim.config import WorldConfig
 from drivers.sim.world import World
 
-from conftest import SMALL_WORLD, pairs
+from conftest import SMALL_WORLD, WIDE_WORLD, pairs
 
-# 20 m across without craters, as the route tests: the lanes below are picked on its truth.
-WORLD = """seed = 3
-size_m = [20.0, 20.0]
-[rocks]
-cover = 0.07
-[craters]
-count = 0
-"""
+WORLD = WIDE_WORLD
 EVENT = re.compile(r"^\* EVENT hazard seq=(\d+) state=(clear|hazard|unknown) distance=(\S+) x=(\S+) y=(\S+) "
                    r"latency_ms=(\S+)")
 

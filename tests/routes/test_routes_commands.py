@@ -12,17 +12,10 @@ import json
 import math
 from pathlib import Path
 
-from conftest import pairs
+from conftest import WIDE_WORLD, pairs
 
 TAGS = itertools.count(1)
-# 20 m across without craters: the forward camera sees ground, not the world's edge, on every leg.
-WORLD = """seed = 3
-size_m = [20.0, 20.0]
-[rocks]
-cover = 0.07
-[craters]
-count = 0
-"""
+WORLD = WIDE_WORLD
 
 
 def command(client, line: str, timeout: float = 300.0) -> tuple[str, list[str]]:

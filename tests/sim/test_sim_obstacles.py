@@ -16,6 +16,8 @@ from drivers.sim.rover import Rover
 from drivers.sim.world import World
 from toolbox.camera import Intrinsics
 
+from conftest import look_at
+
 SMALL = WorldConfig(seed=5, size_m=(8.0, 8.0), cell_m=0.01)
 CAMERA = Intrinsics(width=160, height=120, fx=150.0, fy=150.0, cx=80.0, cy=60.0)
 
@@ -23,16 +25,6 @@ CAMERA = Intrinsics(width=160, height=120, fx=150.0, fy=150.0, cx=80.0, cy=60.0)
 @pytest.fixture(scope="module")
 def world() -> World:
     return World.build(SMALL)
-
-
-def look_at(eye, target) -> np.ndarray:
-    eye, target = np.asarray(eye, float), np.asarray(target, float)
-    forward = (target - eye) / np.linalg.norm(target - eye)
-    right = np.cross(forward, [0.0, 0.0, 1.0])
-    right /= np.linalg.norm(right)
-    pose = np.eye(4)
-    pose[:3, 0], pose[:3, 1], pose[:3, 2], pose[:3, 3] = right, np.cross(forward, right), forward, eye
-    return pose
 
 
 def view_of(world: World, x: float, y: float, back: float = 2.0, aim: float = 0.1) -> np.ndarray:

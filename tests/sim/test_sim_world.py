@@ -16,6 +16,8 @@ from drivers.sim.rover import Rover
 from drivers.sim.world import World
 from toolbox.camera import Intrinsics
 
+from conftest import look_at
+
 SMALL = WorldConfig(seed=3, size_m=(10.0, 10.0))
 SR4000 = Intrinsics(width=176, height=144, fx=262.92, fy=262.92, cx=88.0, cy=69.0, k1=-0.826, k2=0.656)
 
@@ -23,17 +25,6 @@ SR4000 = Intrinsics(width=176, height=144, fx=262.92, fy=262.92, cx=88.0, cy=69.
 @pytest.fixture(scope="module")
 def world() -> World:
     return World.build(SMALL)
-
-
-def look_at(eye, target) -> np.ndarray:
-    """Camera-to-world pose (OpenCV axes) at `eye` looking at `target`, image rows level."""
-    eye, target = np.asarray(eye, float), np.asarray(target, float)
-    forward = (target - eye) / np.linalg.norm(target - eye)
-    right = np.cross(forward, [0.0, 0.0, 1.0])
-    right /= np.linalg.norm(right)
-    pose = np.eye(4)
-    pose[:3, 0], pose[:3, 1], pose[:3, 2], pose[:3, 3] = right, np.cross(forward, right), forward, eye
-    return pose
 
 
 def ground_view_pose(world: World) -> np.ndarray:

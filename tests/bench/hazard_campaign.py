@@ -1,0 +1,257 @@
+"""Campaign: the hazard guard against obstacles no map knew, on seeded scenes, scored on the truth.
+
+    python tests/bench/hazard_campaign.py [--seeds 21 22 23 24 25] [--encounters 10]
+
+Per scene (a 20 m seeded world, one real rvs-server at sim-speed 50, `hazard-start` running all
+along, the rover at its routes.toml speed, 0.3 m/s):
+- clean runs: the rover turns onto a lane that the truth says is clear (no rock over 8 cm within
+  0.5 m of its centre line, i.e. the swept footprint and 0.15 m more each side) and drives it;
+  any stop there is a false stop;
+- blind-drive encounters: on such a lane, after it turned, a rock of 12-30 cm (or, one time in
+  five, a standing person) is dropped 1.6-3.8 m ahead of the rover's centre, up to 0.2 m off the
+  line, and the rover is told to drive 5 m: it must stop before contact;
+- taught-route encounters: a route of two 2 m legs is taught on a clear lane, repeated backward to
+  its start, a rock is dropped on it, and the route is repeated forward: it must stop.
+The rover's true pose comes from a grab-tof product's truth/state.json; the stops' true clearance
+(free way from the true footprint to the nearest true obstacle over 10 cm) and contact counts from
+hazard-stop's stops.csv and the products' truth. Prints one line per encounter and the summary.
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import math
+import sys
+import tempfile
+import time
+import tomllib
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(REPO / "tests"))
+sys.path.insert(0, str(REPO))
+
+from conftest import ServerProcess, pairs, write_configs  # noqa: E402
+from drivers.sim.config import WorldConfig  # noqa: E402
+from drivers.sim.world import World  # noqa: E402
+
+LANE_HALF_WIDTH = 0.50      # 0.25 half body + 0.10 guard margin + 0.15 for drive error
+CLEAR_BELOW = 0.08          # a lane is clean when no rock on it is taller than this
+CLEAN_RUN_M = 4.0           # each clean run
+
+
+def world_toml(seed: int) -> str:
+    return f"seed = {seed}\nsize_m = [20.0, 20.0]\n[rocks]\ncover = 0.07\n[craters]\ncount = 1\n"
+
+
+class Scene:
+    def __init__(self, seed: int, workdir: Path):
+        self.seed = seed
+        text = world_toml(seed)
+        self.world = World.build(WorldConfig(**tomllib.loads(text)))
+        config = write_configs(workdir / "configs", {"world.toml": text})
+        self.server = ServerProcess(workdir / "data", config).start(timeout=180)
+        self.client = self.server.connect(timeout=900)
+        self.rng = np.random.default_rng(seed)
+
+    def command(self, line: str, timeout: float = 900) -> str:
+        return self.client.command(line, timeout=timeout)
+
+    def truth(self) -> dict:
+        """The simulator's truth of this instant, from a grab-tof product."""
+        reply = self.command("grab-tof --output truth")
+        if " OK " not in reply:
+            raise RuntimeError(f"grab-tof: {reply}")
+        return json.loads((Path(pairs(reply)["path"]) / "truth" / "state.json").read_text())["rover"]
+
+    def true_pose(self) -> tuple[float, float, float]:
+        rover = self.truth()
+        return rover["x"], rover["y"], rover["heading_rad"]
+
+    def contacts(self) -> int:
+        return int(self.truth()["contacts"])
+
+    def lane_clear(self, x: float, y: float, heading: float, length: float) -> bool:
+        along = np.arange(-0.4, length + 0.3, 0.02)
+        across = np.arange(-LANE_HALF_WIDTH, LANE_HALF_WIDTH + 1e-9, 0.02)
+        a, b = np.meshgrid(along, across)
+        c, s = math.cos(heading), math.sin(heading)
+        xs, ys = x + a * c - b * s, y + a * s + b * c
+        g = self.world.grid
+        if not ((xs > g.x_min + 1.0) & (xs < g.x_max - 1.0) & (ys > g.y_min + 1.0) & (ys < g.y_max - 1.0)).all():
+            return False
+        if np.nanmax(self.world.protrusion_at(xs, ys)) >= CLEAR_BELOW:
+            return False
+        return bool(np.nanmax(self.world.slope_at(xs[::5, ::5], ys[::5, ::5], 0.25)) < 15.0)
+
+    def onto_lane(self, length: float) -> tuple[float, float, float] | None:
+        """Turn onto a clear lane of `length`; the true pose on it, or None when none is found."""
+        for _ in range(4):
+            x, y, h = self.true_pose()
+            if self.lane_clear(x, y, h, length):
+                return x, y, h
+            towards_centre = math.atan2(-y, -x)
+            options = sorted(np.radians(np.arange(0, 360, 10)), key=lambda a: abs(_wrap(a - towards_centre)))
+            target = next((a for a in options if self.lane_clear(x, y, a, length)), None)
+            if target is None:
+                return None
+            turn = math.degrees(_wrap(target - h))
+            if abs(turn) >= 1.0:
+                self.command(f"drive --turn {turn:.1f}")
+        x, y, h = self.true_pose()
+        return (x, y, h) if self.lane_clear(x, y, h, length) else None
+
+    def drop(self, x: float, y: float, h: float, person: bool) -> tuple[str, str, float, float]:
+        distance = float(self.rng.uniform(1.6, 3.8))
+        offset = float(self.rng.uniform(-0.2, 0.2))
+        px = x + distance * math.cos(h) - offset * math.sin(h)
+        py = y + distance * math.sin(h) + offset * math.cos(h)
+        if person:
+            reply = self.command(f"astronaut --at {px:.3f},{py:.3f}")
+            return "person", f"astronaut --remove", distance, 1.8
+        height = float(self.rng.uniform(0.12, 0.30))
+        reply = pairs(self.command(f"sim-rock --at {px:.3f},{py:.3f} --height {height:.3f}"))
+        return "rock", f"sim-rock --remove {reply['rock']}", distance, height
+
+    def close(self) -> None:
+        self.client.close()
+        self.server.stop()
+
+
+def _wrap(angle: float) -> float:
+    return (angle + math.pi) % (2 * math.pi) - math.pi
+
+
+def run_scene(scene: Scene, encounters: int, routes: int, log: list[dict]) -> dict:
+    clean_m, false_stops, done = 0.0, 0, 0
+    stops = 0   # guard stops so far: the row of stops.csv each encounter's stop will be
+    assert " OK " in scene.command("hazard-start")
+    contacts0 = scene.contacts()
+    attempts = 0
+    while done < encounters and attempts < encounters * 4:
+        attempts += 1
+        # A clean run first (also moves the rover to fresh ground), then an encounter on a clear lane.
+        lane = scene.onto_lane(CLEAN_RUN_M + 0.5)
+        if lane is not None:
+            reply = scene.command(f"drive --forward {CLEAN_RUN_M}")
+            if "drive stopped: hazard" in reply:
+                false_stops += 1
+                stops += 1
+                print(f"  seed {scene.seed}: FALSE STOP on a clean lane: {reply}", flush=True)
+            elif " OK " in reply:
+                clean_m += CLEAN_RUN_M
+        lane = scene.onto_lane(5.0)
+        if lane is None:
+            continue
+        person = done % 5 == 4
+        kind, remove, distance, height = scene.drop(*lane, person)
+        before = scene.contacts()
+        reply = scene.command("drive --forward 5")
+        after = scene.contacts()
+        stopped = "drive stopped: hazard" in reply
+        log.append({"seed": scene.seed, "kind": kind, "how": "drive", "height": height, "dropped_at": distance,
+                    "stopped": stopped, "contacts": after - before, "reply": reply, "stop_row": stops})
+        stops += int(stopped)
+        print(f"  seed {scene.seed} {kind} {height:.2f} m at {distance:.2f} m: "
+              f"{'stopped' if stopped else 'NOT STOPPED'}, contacts {after - before}", flush=True)
+        scene.command(remove)
+        stops += back_off(scene)
+        done += 1
+    for index in range(routes):
+        lane = scene.onto_lane(4.5)
+        if lane is None:
+            continue
+        name = f"lane{index}"
+        taught = [scene.command(f"route-record start --name {name}"), scene.command("drive --forward 2"),
+                  scene.command("drive --forward 2"), scene.command("route-record stop")]
+        if not all(" OK " in reply for reply in taught):
+            print(f"  seed {scene.seed}: route {name} not taught: {taught}", flush=True)
+            continue
+        back = scene.command(f"route-follow --name {name} --reverse")
+        x, y, h = scene.true_pose()
+        if " OK " not in back or not scene.lane_clear(x, y, h, 4.0):
+            print(f"  seed {scene.seed}: route {name} not back on a clear lane ({back})", flush=True)
+            continue
+        kind, remove, distance, height = scene.drop(x, y, h, False)
+        before = scene.contacts()
+        reply = scene.command(f"route-follow --name {name}")
+        after = scene.contacts()
+        stopped = "drive stopped: hazard" in reply
+        log.append({"seed": scene.seed, "kind": kind, "how": "route-follow", "height": height,
+                    "dropped_at": distance, "stopped": stopped, "contacts": after - before, "reply": reply,
+                    "stop_row": stops})
+        stops += int(stopped)
+        print(f"  seed {scene.seed} route {kind} {height:.2f} m at {distance:.2f} m: "
+              f"{'stopped' if stopped else 'NOT STOPPED'}, contacts {after - before}", flush=True)
+        scene.command(remove)
+        stops += back_off(scene)
+    reply = scene.command("hazard-stop", timeout=120)
+    rows = list(csv.DictReader(open(Path(pairs(reply)["path"]) / "stops.csv")))
+    for entry in log:
+        if entry["seed"] == scene.seed and entry["stopped"] and entry["stop_row"] < len(rows):
+            value = rows[entry["stop_row"]]["true_clearance_m"]
+            entry["clearance"] = None if value == "none" else float(value)
+    return {"clean_m": clean_m, "false_stops": false_stops, "summary": pairs(reply),
+            "contacts": scene.contacts() - contacts0}
+
+
+def back_off(scene: Scene) -> int:
+    """After an obstacle is taken away: back up 1.5 m, so the sensor sees the ground where it stood
+    (the guard remembers a hazard below its view until a frame sees that ground clear again; a rock
+    does not vanish, but the campaign's does). Returns the guard stops it met (0 or 1)."""
+    reply = scene.command("drive --backward 1.5")
+    return int("drive stopped: hazard" in reply)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--seeds", type=int, nargs="+", default=[21, 22, 23, 24, 25])
+    parser.add_argument("--encounters", type=int, default=8, help="blind-drive encounters per scene")
+    parser.add_argument("--routes", type=int, default=2, help="taught-route encounters per scene")
+    parser.add_argument("--keep", help="keep each scene's data directory under this directory")
+    args = parser.parse_args()
+    started = time.monotonic()
+    log: list[dict] = []
+    clean_m, false_stops, contacts = 0.0, 0, 0
+    for seed in args.seeds:
+        with tempfile.TemporaryDirectory(prefix=f"hazard-campaign-{seed}-", dir=args.keep) as tmp:
+            if args.keep:   # keep the products to look at: TemporaryDirectory's own clean-up is skipped
+                tmp = tempfile.mkdtemp(prefix=f"hazard-campaign-{seed}-", dir=args.keep)
+            scene = Scene(seed, Path(tmp))
+            try:
+                result = run_scene(scene, args.encounters, args.routes, log)
+            finally:
+                scene.close()
+        clean_m += result["clean_m"]
+        false_stops += result["false_stops"]
+        contacts += result["contacts"]
+        print(f"seed {seed}: {result['summary']}", flush=True)
+    encounters = len(log)
+    # Stopped for the dropped obstacle: stopped, no contact, and the nearest true obstacle ahead is within 1 m.
+    short = [e for e in log if e["stopped"] and e["contacts"] == 0 and e.get("clearance") is not None
+             and e["clearance"] < 1.0]
+    touched = sum(e["contacts"] > 0 for e in log)
+    margins = [e["clearance"] for e in short]
+    print("\n== hazard guard campaign ==")
+    print(f"scenes {len(args.seeds)} (seeds {' '.join(map(str, args.seeds))}), 20 m worlds, rover 0.3 m/s, "
+          f"stop distance 0.5 m, TOF at 5 Hz")
+    print(f"encounters {encounters} (drive {sum(e['how'] == 'drive' for e in log)}, route-follow "
+          f"{sum(e['how'] == 'route-follow' for e in log)}; rocks {sum(e['kind'] == 'rock' for e in log)} of "
+          f"12-30 cm, persons {sum(e['kind'] == 'person' for e in log)})")
+    print(f"stopped short of the obstacle before contact: {len(short)}/{encounters}; encounters with a contact: "
+          f"{touched}; other outcomes: {[(e['seed'], e['kind'], e['reply'][-90:], e.get('clearance')) for e in log if e not in short]}")
+    print(f"contacts over the campaign (truth): {contacts}")
+    if margins:
+        m = np.array(margins)
+        print(f"stop margin (true free way left, m): min {m.min():.3f} p5 {np.percentile(m, 5):.3f} "
+              f"median {np.median(m):.3f} max {m.max():.3f} over {len(m)} stops")
+    print(f"clean runs: {clean_m:.1f} m, false stops {false_stops} -> "
+          f"{100.0 * false_stops / max(clean_m, 1e-9):.2f} per 100 m")
+    print(f"wall time {time.monotonic() - started:.0f} s")
+
+
+if __name__ == "__main__":
+    main()
