@@ -110,6 +110,16 @@ class AlbedoConfig(_Model):
     detail_contrast: float = Field(0.12, ge=0.0)
 
 
+class RoverSpeed(BaseModel):
+    """How fast the simulated rover drives and turns (world.toml [rover_speed]): a property of the
+    rover, the same whichever command drives it; it moves in steps at this speed (motion.py)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    drive_m_s: float = Field(0.3, gt=0.0, le=5.0)
+    turn_deg_s: float = Field(20.0, gt=0.0, le=180.0)
+
+
 class DriveError(BaseModel):
     """Standard deviations of a rover's open-loop motion errors: the simulated rover draws them
     (world.toml, drivers/sim/motion.py), navigate's drive-error cut assumes them (navigation.toml)."""
@@ -147,6 +157,8 @@ class WorldConfig(_Model):
     rover_start: tuple[float, float, float] = (0.0, 0.0, 0.0)
     # How the simulated rover misses the motions it is told to make (drivers/sim/motion.py).
     drive_error: DriveError = DriveError()
+    # How fast it drives and turns.
+    rover_speed: RoverSpeed = RoverSpeed()
 
     @model_validator(mode="after")
     def _check(self) -> "WorldConfig":

@@ -46,11 +46,10 @@ __all__ = ["Drive", "DriveGuard", "DriveMode", "DriveStopped", "ForwardCamera", 
 
 @dataclass(frozen=True)
 class Pace:
-    """What a command family's settings say about driving: the simulated rover's speeds, the height
-    above which a rock counts as a contact, and how long the GNC's pose is waited for."""
+    """What a command family's settings say about driving: the height above which a rock counts as
+    a contact, and how long the GNC's pose is waited for. (The simulated rover's speeds are the
+    rover's own: world.toml [rover_speed].)"""
 
-    turn_rate_deg_s: float
-    speed_m_s: float
     step_height_m: float
     pose_timeout_s: float
 
@@ -168,8 +167,9 @@ class SimulatedDrive(Drive):
             raise WorldEdge(f"the simulated rover would leave the simulated world: {edge}")
         direction = 1 if distance >= 0 else -1
         drive_steps = planned.samples - planned.turn_steps
-        turn_s = abs(math.degrees(turn)) / pace.turn_rate_deg_s / planned.turn_steps
-        drive_s = abs(distance) / pace.speed_m_s / max(1, drive_steps)
+        speed = testbed.world_config.rover_speed
+        turn_s = abs(math.degrees(turn)) / speed.turn_deg_s / planned.turn_steps
+        drive_s = abs(distance) / speed.drive_m_s / max(1, drive_steps)
         done_turn, done_distance, contacts = 0.0, 0.0, 0
         started_s = job.clock.now() if rover.guard is not None else 0.0
         true_path: list[list[float]] = []
@@ -177,7 +177,7 @@ class SimulatedDrive(Drive):
             driving = k > planned.turn_steps
             if driving and rover.guard is not None and distance != 0:
                 here = self._estimate(start, done_turn, done_distance, start.roll, start.pitch)
-                why = rover.guard.check(job, here, direction, abs(distance - done_distance), pace.speed_m_s,
+                why = rover.guard.check(job, here, direction, abs(distance - done_distance), speed.drive_m_s,
                                         started_s)
                 if why is not None:
                     moved = Moved(here, (done_turn, done_distance), 1, contacts, true_path)

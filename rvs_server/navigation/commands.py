@@ -133,8 +133,6 @@ class NavigationSettings(Settings):
     route_hysteresis: float = Field(0.25, ge=0, description="navigate keeps its last route while it is clear and "
                                     "costs at most this fraction more than a new plan; 0: replan from scratch")
     min_progress_m: float = Field(0.15, gt=0, description="a safe part shorter than this is a stall")
-    drive_speed_m_s: float = Field(0.3, gt=0, description="simulated rover speed")
-    turn_rate_deg_s: float = Field(20.0, gt=0, description="simulated rover turn rate")
     step_limit_m: float = Field(0.09, gt=0, description="navigate's maps call a step hazardous from this "
                                 "height: below the rover's limit by the sensors' height error")
     tilt: PerSensor[Range] = Field(

@@ -417,8 +417,7 @@ class Navigation:
         """Drive the waypoints handed out (the rover device's drive: simulated, or the GNC's, which
         the job waits for; the wait ends at `break` too), checkpointed after each part."""
         state, settings = self.state, self.settings
-        pace = Pace(settings.turn_rate_deg_s, settings.drive_speed_m_s, self.mapping.truth_step,
-                    settings.pose_timeout_s)
+        pace = Pace(self.mapping.truth_step, settings.pose_timeout_s)
         moves = self.drive_by.waypoints(self.ctx, state.to_drive, state.rover, pace, self.goal, state.cycle,
                                         self._announce_leg)
         try:

@@ -73,8 +73,6 @@ class RoutesSettings(Settings):
     forward_camera: ForwardCameraConfig = ForwardCameraConfig()
     actions: Literal["auto", "simulated", "gnc"] = Field("auto", description="who executes actions: the simulated "
                                                        "rover, or the GNC (navigate event, then pose)")
-    drive_speed_m_s: float = Field(0.3, gt=0)
-    turn_rate_deg_s: float = Field(20.0, gt=0)
     truth_step_m: float = Field(0.10, gt=0, description="simulated: rocks taller than this count as contacts")
     max_drive_m: float = Field(20.0, gt=0, le=100, description="longest single drive action")
     pose_timeout_s: float = Field(300.0, gt=0)

@@ -47,8 +47,7 @@ class RouteRover:
         self.ctx, self.settings, self.matcher = ctx, settings, matcher
         self.device = ctx.devices.rover
         self.drive = self.device.drive(settings.actions, "routes.actions")
-        self.pace = Pace(settings.turn_rate_deg_s, settings.drive_speed_m_s, settings.truth_step_m,
-                         settings.pose_timeout_s)
+        self.pace = Pace(settings.truth_step_m, settings.pose_timeout_s)
         self.true_path: list[list[float]] = []
         self.images = 0
         self.device.wait_for_world()

@@ -16,7 +16,7 @@ from rvs_server.devices.tof import TofDeviceConfig
 from rvs_server.protocol import BadRequest, DeviceError, Timeout
 from toolbox.geometry import RoverPose
 
-PACE = Pace(turn_rate_deg_s=20.0, speed_m_s=0.5, step_height_m=0.10, pose_timeout_s=2.0)
+PACE = Pace(step_height_m=0.10, pose_timeout_s=2.0)
 REAL = DevicesConfig(tof=TofDeviceConfig(backend="mesa"), cameras=CamerasDeviceConfig(backend="vimba"))
 
 
@@ -68,9 +68,10 @@ def test_the_simulated_drive_moves_the_rover_with_its_error_and_dead_reckons(dev
     x, y, heading = rover.true_pose()
     assert math.dist((x, y), (2.5, -1.0)) < 0.3 and (x, y) != pytest.approx((2.5, -1.0), abs=1e-6)
     assert moved.true_path[-1] == pytest.approx([x, y, heading]) and len(moved.true_path) >= 40   # every 5 cm
-    # In simulated time, sample by sample (a guard may stop it between two): 90 deg at 20 deg/s, 2 m at 0.5 m/s.
+    # In simulated time, sample by sample (a guard may stop it between two), at world.toml's rover
+    # speeds: 90 deg at 20 deg/s, 2 m at 0.3 m/s.
     # Each action is its turn's samples (10 deg at most) then its drive's (5 cm at most), one of them empty.
-    assert sum(job.slept) == pytest.approx(90.0 / 20.0 + 2.0 / 0.5, abs=1e-9) and len(job.slept) == (9 + 1) + (1 + 40)
+    assert sum(job.slept) == pytest.approx(90.0 / 20.0 + 2.0 / 0.3, abs=1e-9) and len(job.slept) == (9 + 1) + (1 + 40)
     # The GNC said where the rover is: the next action dead-reckons from there.
     rover.report_pose(RoverPose(1.0, 1.0, 0.0, math.pi))
     assert drive.act(job, "backward", 0.5, PACE).estimate.x == pytest.approx(1.5)
