@@ -104,6 +104,17 @@ class Scene:
         x, y, h = self.true_pose()
         return (x, y, h) if self.lane_clear(x, y, h, length) else None
 
+    def relocate(self) -> None:
+        """No clear 5 m lane from here: drive 1.5 m down the clearest short lane, towards the centre."""
+        x, y, h = self.true_pose()
+        towards_centre = math.atan2(-y, -x)
+        options = sorted(np.radians(np.arange(0, 360, 10)), key=lambda a: abs(_wrap(a - towards_centre)))
+        target = next((a for a in options if self.lane_clear(x, y, a, 2.0)), None)
+        if target is None:
+            return
+        self.command(f"drive --turn {math.degrees(_wrap(target - h)):.1f}")
+        self.command("drive --forward 1.5")
+
     def drop(self, x: float, y: float, h: float, person: bool) -> tuple[str, str, float, float]:
         distance = float(self.rng.uniform(1.6, 3.8))
         offset = float(self.rng.uniform(-0.2, 0.2))
@@ -145,6 +156,7 @@ def run_scene(scene: Scene, encounters: int, routes: int, log: list[dict]) -> di
                 clean_m += CLEAN_RUN_M
         lane = scene.onto_lane(5.0)
         if lane is None:
+            scene.relocate()
             continue
         person = done % 5 == 4
         kind, remove, distance, height = scene.drop(*lane, person)
@@ -163,6 +175,10 @@ def run_scene(scene: Scene, encounters: int, routes: int, log: list[dict]) -> di
     for index in range(routes):
         lane = scene.onto_lane(4.5)
         if lane is None:
+            scene.relocate()
+            lane = scene.onto_lane(4.5)
+        if lane is None:
+            print(f"  seed {scene.seed}: no clear 4.5 m lane for route {index}", flush=True)
             continue
         name = f"lane{index}"
         taught = [scene.command(f"route-record start --name {name}"), scene.command("drive --forward 2"),
