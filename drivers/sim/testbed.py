@@ -61,6 +61,7 @@ class SimulatedTestbed:
         self.start_pose = start_pose
         self.drive_error = drive_error or DriveError()
         self._motion_rng = np.random.default_rng([self.world_config.seed, 17])
+        self._inclinometer_rng = np.random.default_rng([self.world_config.seed, 23])  # readings between moves
         self.odometer_m = 0.0
         self.contacts = 0
         self._world: World | None = None
@@ -191,6 +192,13 @@ class SimulatedTestbed:
         contact = rover.collides(step_height)
         self.contacts += int(contact)
         return contact
+
+    def inclinometer(self, noise_deg: float = 0.1) -> tuple[float, float]:
+        """Roll and pitch (radians) read now, as inclination() but from their own noise stream, so
+        readings taken beside a drive (a hazard frame) never change the drive's errors."""
+        roll, pitch = self.rover.roll_pitch()
+        noise = np.radians(self._inclinometer_rng.normal(0.0, noise_deg, 2))
+        return roll + float(noise[0]), pitch + float(noise[1])
 
     def inclination(self, noise_deg: float = 0.1) -> tuple[float, float]:
         """Roll and pitch (radians) as an inclinometer on the body reads them: truth plus noise."""

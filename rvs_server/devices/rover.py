@@ -323,6 +323,14 @@ class RoverDevice:
             return SimulatedDrive(self)
         return GncDrive(self)
 
+    def inclination(self) -> tuple[float, float]:
+        """Roll and pitch now: the simulated rover's inclinometer; else the estimate's (the GNC
+        reports them with its pose). The estimate's own may be a drive old: a `drive` keeps them."""
+        if self.simulated:
+            return self.testbed.inclinometer()
+        pose = self.pose_estimate
+        return pose.roll, pose.pitch
+
     def hand_over_sensors(self) -> None:
         """A rover that starts to move gives the job's PTU and sensors to the activities that guard
         it (devices/sharing.py); the job takes them back when it looks again."""

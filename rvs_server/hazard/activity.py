@@ -14,7 +14,7 @@ from __future__ import annotations
 import math
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -91,7 +91,9 @@ class HazardActivity(Activity):
             if busy is not None:
                 return self.unknown(seq, f"a job holds the {busy}")
             pan, tilt = self._point(devices)
-            pose = devices.rover.pose_estimate
+            # The attitude of this instant: a frame seen with a drive-old roll or pitch tilts the
+            # ground by the difference (campaign: 11 degree ground read as a 20 degree slope).
+            pose = replace(devices.rover.pose_estimate, **dict(zip(("roll", "pitch"), devices.rover.inclination())))
             truth = devices.rover.true_pose()
             sim_s = self.server.clock.now()
             to_points = self._grab(devices, pose, pan, tilt)
