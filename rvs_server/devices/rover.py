@@ -156,8 +156,8 @@ class SimulatedDrive(Drive):
              incline: bool = False) -> Moved:
         """Turn, then drive (negative: backward), sample by sample in simulated time, so a guard can
         stop the rover between two samples (DriveStopped). The estimate is dead-reckoned from start
-        (default: the estimate now) as the samples go; incline: roll and pitch from the
-        inclinometer at the end, else start's."""
+        (default: the estimate now) as the samples go, and takes roll and pitch from the
+        inclinometer at the end (incline: on the drive's noise stream, as navigate's legs do)."""
         rover, testbed = self.rover, self.rover.testbed
         rover.hand_over_sensors()
         start = start or rover.pose_estimate
@@ -195,7 +195,9 @@ class SimulatedDrive(Drive):
             else:
                 done_turn = turn * k / planned.turn_steps
             rover.pose_estimate = self._estimate(start, done_turn, done_distance, start.roll, start.pitch)
-        roll, pitch = testbed.inclination() if incline else (start.roll, start.pitch)
+        # The attitude where it stopped: the inclinometer (navigate's legs read it on the drive's own
+        # noise stream, as always; other moves on the inclinometer's, so their drive errors stay).
+        roll, pitch = testbed.inclination() if incline else testbed.inclinometer()
         estimate = self._estimate(start, turn, distance, roll, pitch)
         rover.pose_estimate = estimate
         return Moved(estimate, (turn, distance), 1, contacts, true_path)
