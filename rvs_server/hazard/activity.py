@@ -20,7 +20,6 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from rvs_server.activities import Activity
-from toolbox.camera import Intrinsics
 from toolbox.geometry import RoverPose, camera_to_world, relative_pose
 from toolbox.mapping import dem as dem_tools
 from toolbox.mapping.corridor import CorridorParams, CorridorView, HazardMemory, Hit, corridor_view
@@ -79,6 +78,17 @@ class HazardActivity(Activity):
     def nearest(self, pose: tuple[float, float, float], direction: int, max_distance: float) -> Hit | None:
         with self._memory_lock:
             return self.memory.nearest(pose, direction, max_distance)
+
+    def blind_reason(self, since_s: float, pose: RoverPose) -> str:
+        """Why no frame counts as fresh for a drive begun at since_s, standing at pose."""
+        newest, last = self.newest, self.records[-1] if self.records else None
+        if last is not None and last.state == "unknown":
+            return f"frame {last.seq} was unknown: {last.reason}"
+        if newest is None:
+            return "no frame was processed yet"
+        if newest.sim_s < since_s:
+            return f"the newest frame was taken {since_s - newest.sim_s:.1f} s before this move began"
+        return f"the newest frame lies {math.dist((newest.pose.x, newest.pose.y), (pose.x, pose.y)):.2f} m back"
 
     def start(self) -> None:
         self.server.devices.rover.guard = self.guard
@@ -148,26 +158,25 @@ class HazardActivity(Activity):
                 return points, valid, camera_to_world(pose, self.mounts["tof"], pan_rad, tilt_rad)
             return tof_points
         pair = devices.cameras.ready_driver()
-        frames = pair.grab("both", timeout_s=devices.cameras.grab_timeout_s)
+        frames = _binned_grab(pair, self.settings.stereo_resolution, devices.cameras.grab_timeout_s)
         left_pose = camera_to_world(pose, self.mounts["left"], pan_rad, tilt_rad)
         right_pose = camera_to_world(pose, self.mounts["right"], pan_rad, tilt_rad)
-        rect, factor, config = self._rectification(devices, pair, left_pose, right_pose)
+        rect, config = self._rectification(pair, left_pose, right_pose)
 
         def stereo_frame_points():
-            left, right = (_smaller(_grey(frames[role].image), factor) for role in ("left", "right"))
+            left, right = (_grey(frames[role].image) for role in ("left", "right"))
             points, valid = stereo_points(left, right, rect, config)
             return points, valid & (points[..., 2] < self.settings.stereo_max_range_m), left_pose
         return stereo_frame_points
 
-    def _rectification(self, devices: Any, pair: Any, left_pose: np.ndarray, right_pose: np.ndarray):
-        """The pair's rectification at the hazard resolution: the mounts do not move, so once."""
+    def _rectification(self, pair: Any, left_pose: np.ndarray, right_pose: np.ndarray):
+        """The pair's rectification in the hazard frames' binned mode: the mounts do not move, so once."""
         if self._rectified is None:
-            factor = self.settings.stereo_downscale
-            mode = devices.cameras.config.resolution
-            left, right = (_scaled(pair.camera(role).intrinsics(mode), factor) for role in ("left", "right"))
+            mode = self.settings.stereo_resolution
+            left, right = (pair.camera(role).intrinsics(mode) for role in ("left", "right"))
             rect = rectification(StereoCalibration(left, right, relative_pose(left_pose, right_pose)))
             config = SgbmConfig(num_disparities=self.settings.stereo_disparities, block_size=5)
-            self._rectified = (rect, factor, config)
+            self._rectified = (rect, config)
         return self._rectified
 
     # -- the end -------------------------------------------------------------------------------------
@@ -191,19 +200,17 @@ def _grey(image: np.ndarray) -> np.ndarray:
     return image if image.ndim == 2 else np.round(image.mean(axis=2)).astype(np.uint8)
 
 
-def _smaller(image: np.ndarray, factor: int) -> np.ndarray:
-    if factor == 1:
-        return image
-    import cv2
-    return cv2.resize(image, (image.shape[1] // factor, image.shape[0] // factor), interpolation=cv2.INTER_AREA)
-
-
-def _scaled(k: Intrinsics, factor: int) -> Intrinsics:
-    """The intrinsics of an image `factor` times smaller (pixel centres at integers)."""
-    if factor == 1:
-        return k
-    return Intrinsics(k.width // factor, k.height // factor, k.fx / factor, k.fy / factor,
-                      (k.cx + 0.5) / factor - 0.5, (k.cy + 0.5) / factor - 0.5, k.k1, k.k2)
+def _binned_grab(pair: Any, mode: str, timeout_s: float) -> dict:
+    """One triggered pair in the binned resolution mode `mode` (fewer pixels to read out, match and,
+    simulated, render), the cameras' own mode given back afterwards for the job's next images."""
+    own = pair.settings
+    if own.resolution == mode:
+        return pair.grab("both", timeout_s=timeout_s)
+    pair.apply(own.with_changes(resolution=mode))
+    try:
+        return pair.grab("both", timeout_s=timeout_s)
+    finally:
+        pair.apply(own)
 
 
 __all__ = ["HazardActivity", "causes"]

@@ -34,10 +34,14 @@ class HazardSettings(Settings):
     max_reach_cells: float = Field(2.0, ge=0, le=10, description="corridor DEM holes filled this close to data")
     latency_budget_s: float = Field(0.1, ge=0, le=5, description="a drive waits when the newest frame lies more "
                                     "than speed x (1/rate + this) behind the rover")
-    max_blind_s: float = Field(10.0, gt=0, le=600, description="a drive without a fresh frame this long stops")
-    stereo_downscale: int = Field(2, ge=1, le=8, description="stereo images are matched this many times smaller")
+    max_blind_s: float = Field(10.0, gt=0, le=600, description="a drive without a fresh frame this long (wall "
+                               "clock) stops")
+    stereo_resolution: Literal["low", "medium", "high", "highest"] = Field(
+        "low", description="the cameras' resolution mode for hazard frames (low: 4 x 4 binning, 480 x 270), given "
+        "back after each frame")
     stereo_disparities: int = Field(64, ge=16, le=256, multiple_of=16)
-    stereo_max_range_m: float = Field(6.0, gt=0, le=30)
+    stereo_max_range_m: float = Field(4.0, gt=0, le=30, description="stereo points farther than this from the "
+                                      "camera are dropped: at 480 x 270 their depth error reads as steps")
     picture_frames: int = Field(20, ge=1, le=500, description="corridor.png outlines this many last frames")
 
 

@@ -3,8 +3,8 @@
 Two rules, both in the distance the rover drives rather than in time, so they hold at any
 simulation speed-up and on a real rover alike:
 - it never drives blind: at least one frame taken since this move began, and the newest frame taken
-  no more than `blind` metres back (speed x (1/rate + the latency budget)); otherwise it waits, in
-  simulated time, and after `max_blind_s` it stops rather than drive on unseen ground;
+  no more than `blind` metres back (speed x (1/rate + the latency budget)); otherwise it stands and
+  waits, and after `max_blind_s` of wall-clock time it stops rather than drive on unseen ground;
 - a hazard the frames saw (HazardMemory: also ground that has since passed below the sensor's view)
   that the footprint would cover within the stop distance, and within what is left of this leg,
   stops it.
@@ -12,6 +12,7 @@ simulation speed-up and on a real rover alike:
 from __future__ import annotations
 
 import math
+import time
 from typing import TYPE_CHECKING
 
 from rvs_server.devices.rover import DriveGuard
@@ -47,18 +48,20 @@ class HazardGuard(DriveGuard):
         activity = self.activity
         settings = activity.settings
         blind = max(0.05, speed_m_s * (1.0 / activity.rate_hz + settings.latency_budget_s))
-        waited = 0.0
+        # The rover stands while it waits, so waiting is safe; the limit is wall-clock time, because
+        # the frames' processing is (with the simulation sped up, a 0.2 s hiccup of the host would be
+        # 10 simulated seconds, and a stop for nothing).
+        deadline = time.monotonic() + settings.max_blind_s
         while True:
             newest = activity.newest
             if newest is not None and newest.sim_s >= started_s and \
                     math.dist((newest.pose.x, newest.pose.y), (pose.x, pose.y)) <= blind:
                 break
-            if waited >= settings.max_blind_s:
-                why = activity.last_unknown or "no frame was processed"
-                return (f"no hazard frame within {blind:.2f} m for {waited:.1f} s ({why}); the guard does not "
-                        f"drive on unseen ground")
+            if time.monotonic() >= deadline:
+                why = activity.blind_reason(started_s, pose)
+                return (f"no hazard frame within {blind:.2f} m for {settings.max_blind_s:.1f} s ({why}); the guard "
+                        f"does not drive on unseen ground")
             job.sleep(WAIT_STEP_S)
-            waited += WAIT_STEP_S
         hit = activity.nearest((pose.x, pose.y, pose.heading), direction, min(activity.stop_distance, remaining_m))
         if hit is None:
             return None

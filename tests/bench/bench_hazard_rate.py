@@ -13,7 +13,7 @@
    rate and the events' latency_ms; then one full dem-update-tof on the same server and ground (wall
    seconds from send to OK): the reference, as a ratio to the hazard p95 latency.
 3. Stereo, one core, in process: the activity's stereo path (its _grab and _rectification over the
-   emulated pair and trigger: downscale and SGBM disparities from hazard.toml), then the same pipeline;
+   emulated pair and trigger: the binned resolution mode and SGBM disparities from hazard.toml), then the same pipeline;
    and through the server: hazard-start --sensor stereo for ~20 s.
 
 The world: configs/world.toml (seed 1) at 20 x 20 m instead of 40 x 40 m, in process and in the server.
@@ -138,6 +138,13 @@ class Bench:
             def camera(self, role):
                 return pair.camera(role)
 
+            @property
+            def settings(self):
+                return pair.settings
+
+            def apply(self, settings):
+                pair.apply(settings)
+
         cameras = SimpleNamespace(ready_driver=lambda: TimedPair(), grab_timeout_s=SIM_GRAB_TIMEOUT_S,
                                   config=SimpleNamespace(resolution=resolution))
         return SimpleNamespace(cameras=cameras)
@@ -259,7 +266,7 @@ def main() -> None:
           f"(built in {bench.build_s:.1f} s); corridor: body {p.body_length:.2f} x {p.body_width:.2f} m, reach "
           f"{p.reach:g} m, cell {p.cell:g} m, TOF step_min_cells {p.hazard.step_min_cells}; "
           f"TOF tilt {bench.hazard.tof_tilt_deg:g}, stereo tilt {bench.hazard.stereo_tilt_deg:g}, "
-          f"stereo downscale {bench.hazard.stereo_downscale}, {bench.hazard.stereo_disparities} disparities")
+          f"stereo mode {bench.hazard.stereo_resolution}, {bench.hazard.stereo_disparities} disparities")
     print("in process, one core (sched_setaffinity {0}, cv2 and BLAS threads 1):")
     tof = bench.run("tof", args.frames)
     report_in_process("TOF", tof, 5.0, 100.0)
