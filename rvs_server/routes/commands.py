@@ -205,6 +205,10 @@ def _validate_record(server: Host, cfg: RecordConfig) -> None:
         raise WrongMode("route-record stop: no route is being recorded")
     elif cfg.name is not None and cfg.name != recording:
         raise BadRequest(f"route-record stop: --name = {cfg.name!r}, but the route being recorded is {recording!r}")
+    elif not state.store.triplets(recording):
+        # A route of no action has no places to sheet or follow (was a 500 from its contact sheet).
+        raise WrongMode(f"route-record stop: route {recording!r} has no action yet; drive first (it is still "
+                        "being recorded)")
 
 
 @module.job("route-record", RecordConfig, resumable=False, validate=_validate_record, positionals=("action",))

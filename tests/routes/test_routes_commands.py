@@ -100,3 +100,13 @@ def test_teach_repeat_connect_and_go(server_factory):
     with again.connect(timeout=60) as c:
         listing = pairs(c.command("route-list"))
         assert listing["count"] == "2" and listing["route.east"].startswith("finished legs=3"), listing
+
+
+def test_a_route_with_no_action_cannot_be_stopped(server_factory):
+    server = server_factory(configs={"world.toml": WORLD})
+    with server.connect(timeout=300) as c:
+        assert " OK " in c.command("route-record start --name empty", timeout=300)
+        refused = c.command("route-record stop")
+        assert "ERR 409 wrong-mode" in refused and "has no action yet" in refused, refused
+        assert " OK " in c.command("drive --forward 0.5", timeout=300)          # still recording
+        assert pairs(c.command("route-record stop", timeout=300))["triplets"] == "1"
