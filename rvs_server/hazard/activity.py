@@ -103,7 +103,8 @@ class HazardActivity(Activity):
             pan, tilt = self._point(devices)
             # The attitude of this instant: a frame seen with a drive-old roll or pitch tilts the
             # ground by the difference (campaign: 11 degree ground read as a 20 degree slope).
-            pose = replace(devices.rover.pose_estimate, **dict(zip(("roll", "pitch"), devices.rover.inclination())))
+            roll, pitch = devices.rover.inclination()
+            pose = replace(devices.rover.pose_estimate, roll=roll, pitch=pitch)
             truth = devices.rover.true_pose()
             sim_s = self.server.clock.now()
             to_points = self._grab(devices, pose, pan, tilt)
