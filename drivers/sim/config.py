@@ -120,6 +120,18 @@ class RoverSpeed(BaseModel):
     turn_deg_s: float = Field(20.0, gt=0.0, le=180.0)
 
 
+class SunSensor(BaseModel):
+    """The simulated rover's sun sensor (world.toml [sun_sensor]): a fine sun sensor on the body,
+    looking up, that reads the direction toward the sun with this angular error (1 sigma; fine sun
+    sensors are specified at 0.1-0.5 degrees) while the sun is within its field of view."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    noise_deg: float = Field(0.2, ge=0.0, le=10.0)
+    half_fov_deg: float = Field(85.0, gt=0.0, le=90.0, description="the sun farther than this from the body's "
+                                "up axis is not seen")
+
+
 class DriveError(BaseModel):
     """Standard deviations of a rover's open-loop motion errors: the simulated rover draws them
     (world.toml, drivers/sim/motion.py), navigate's drive-error cut assumes them (navigation.toml)."""
@@ -159,6 +171,8 @@ class WorldConfig(_Model):
     drive_error: DriveError = DriveError()
     # How fast it drives and turns.
     rover_speed: RoverSpeed = RoverSpeed()
+    # What its sun sensor reads (toolbox/odometry/sun.py turns that into a heading).
+    sun_sensor: SunSensor = SunSensor()
 
     @model_validator(mode="after")
     def _check(self) -> "WorldConfig":

@@ -26,6 +26,7 @@ from .rover import Rover, RoverConfig
 from .world import World
 
 WALK_STEP_M = 0.005   # a walking astronaut is moved once it is this far from where it stands
+INCLINOMETER_NOISE_DEG = 0.1   # 1 sigma of roll and of pitch as the body's inclinometer reads them
 
 
 @dataclass(frozen=True)
@@ -62,6 +63,7 @@ class SimulatedTestbed:
         self.drive_error = drive_error or DriveError()
         self._motion_rng = np.random.default_rng([self.world_config.seed, 17])
         self._inclinometer_rng = np.random.default_rng([self.world_config.seed, 23])  # readings between moves
+        self._sun_sensor_rng = np.random.default_rng([self.world_config.seed, 29])
         self.odometer_m = 0.0
         self.contacts = 0
         self._world: World | None = None
@@ -193,18 +195,34 @@ class SimulatedTestbed:
         self.contacts += int(contact)
         return contact
 
-    def inclinometer(self, noise_deg: float = 0.1) -> tuple[float, float]:
+    def inclinometer(self, noise_deg: float = INCLINOMETER_NOISE_DEG) -> tuple[float, float]:
         """Roll and pitch (radians) read now, as inclination() but from their own noise stream, so
         readings taken beside a drive (a hazard frame) never change the drive's errors."""
         roll, pitch = self.rover.roll_pitch()
         noise = np.radians(self._inclinometer_rng.normal(0.0, noise_deg, 2))
         return roll + float(noise[0]), pitch + float(noise[1])
 
-    def inclination(self, noise_deg: float = 0.1) -> tuple[float, float]:
+    def inclination(self, noise_deg: float = INCLINOMETER_NOISE_DEG) -> tuple[float, float]:
         """Roll and pitch (radians) as an inclinometer on the body reads them: truth plus noise."""
         roll, pitch = self.rover.roll_pitch()
         noise = np.radians(self._motion_rng.normal(0.0, noise_deg, 2))
         return roll + float(noise[0]), pitch + float(noise[1])
+
+    def sun_sensor(self) -> np.ndarray | None:
+        """The unit vector toward the sun in the rover's body frame as its sun sensor reads it now
+        (truth turned by a random angle of world.toml [sun_sensor] noise_deg, 1 sigma), or None
+        when the sun stands outside the sensor's field of view."""
+        config = self.world_config.sun_sensor
+        body = self.rover.body_to_world[:3, :3].T @ np.asarray(self.world.sun.direction(), dtype=np.float64)
+        if math.degrees(math.acos(float(np.clip(body[2], -1.0, 1.0)))) > config.half_fov_deg:
+            return None
+        # Two perpendicular error angles, each N(0, noise): the reading is off by noise_deg per axis.
+        across = np.cross(body, [1.0, 0.0, 0.0] if abs(body[0]) < 0.9 else [0.0, 1.0, 0.0])
+        across /= np.linalg.norm(across)
+        other = np.cross(body, across)
+        tilt = np.radians(self._sun_sensor_rng.normal(0.0, config.noise_deg, 2))
+        reading = body + tilt[0] * across + tilt[1] * other
+        return reading / np.linalg.norm(reading)
 
     def truth(self) -> dict:
         """The state of the moment, for a product's truth/ folder."""
