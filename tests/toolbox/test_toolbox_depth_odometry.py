@@ -206,9 +206,8 @@ def test_params_refuse_nonsense():
         DepthOdometryParams(min_range_m=5.0, max_range_m=4.0)
     with pytest.raises(ValueError, match="voxel_m"):
         DepthOdometryParams(voxel_m=0.0)
-    assert DepthOdometryParams().correspondence_at(0) == pytest.approx(0.2)
-    assert DepthOdometryParams().correspondence_at(1) == pytest.approx(0.1)
-    assert DepthOdometryParams(voxel_m=0.1).correspondence_at(1) == pytest.approx(0.2)   # floored at 2 voxels
+    with pytest.raises(ValueError, match="one positive distance per scale"):
+        DepthOdometryParams(scales=(4.0, 2.0, 1.0), correspondence_m=(0.1, 0.05))
 
 
 def test_usable_points_drop_invalid_near_and_far():

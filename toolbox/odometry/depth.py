@@ -81,11 +81,11 @@ class DepthFrame:
 class DepthOdometryParams:
     voxel_m: float = 0.04                    # finest voxel the clouds are thinned to (the SR4000's pixel
                                              # spacing is ~1 cm at 3 m: a voxel evens the density out)
-    scales: tuple[float, ...] = (2.0, 1.0)   # coarse-to-fine voxel multiples, one ICP each (a coarser
-                                             # first scale slid 0.6 m along flat ground from the truth)
-    max_correspondence_m: float = 0.2        # correspondence distance at the coarsest scale: covers the
-                                             # dead-reckoning error of a 1.5 m step (~8 cm, 1 deg); halves
-                                             # each scale, never below 2 voxels
+    scales: tuple[float, ...] = (2.0, 1.0)   # coarse-to-fine voxel multiples, one ICP each
+    correspondence_m: tuple[float, ...] = (0.1, 0.05)  # max correspondence distance per scale: the first
+                                             # covers the dead-reckoning error of a 1.5 m step (~8 cm,
+                                             # 1 deg). Wider is worse: at 0.2 m (or 0.3 m) ICP turned the
+                                             # new view 20-40 deg to overlap more of the keyframe (bench)
     iterations: int = 30                     # ICP iterations per scale
     tukey_ratio: float = 0.5                 # Tukey kernel width as a share of the correspondence distance
     normal_radius_voxels: float = 3.0        # normals from neighbours within this many voxels
@@ -96,9 +96,12 @@ class DepthOdometryParams:
     min_inliers: int = 200                   # matched points at the finest scale: else few-inliers
     max_departure_m: float = 0.5             # the result may move this far from the guess: else diverged
     max_departure_deg: float = 15.0          # and turn this far from it
+    covariance_scale: float = 4.0            # sigma^2 (J^T J)^-1 times this: on the bench the errors ran
+                                             # ~2x the raw sigma (neighbours' errors are correlated, the
+                                             # voxel grid biases), so the variance is taken 4x
 
     def __post_init__(self) -> None:
-        for name in ("voxel_m", "max_correspondence_m", "tukey_ratio", "normal_radius_voxels",
+        for name in ("voxel_m", "tukey_ratio", "normal_radius_voxels", "covariance_scale",
                      "max_range_m", "max_departure_m", "max_departure_deg"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)!r}")
@@ -108,11 +111,9 @@ class DepthOdometryParams:
             raise ValueError(f"min_overlap must be in [0, 1], got {self.min_overlap!r}")
         if not self.scales or any(s <= 0 for s in self.scales) or self.iterations < 1:
             raise ValueError(f"scales must be positive and iterations >= 1, got {self.scales}, {self.iterations}")
-
-    def correspondence_at(self, scale_index: int) -> float:
-        """Correspondence distance at a scale: halves from max_correspondence_m, floored at 2 voxels."""
-        voxel = self.voxel_m * self.scales[scale_index]
-        return max(2 * voxel, self.max_correspondence_m * 0.5 ** scale_index)
+        if len(self.correspondence_m) != len(self.scales) or any(d <= 0 for d in self.correspondence_m):
+            raise ValueError(f"correspondence_m needs one positive distance per scale, got {self.correspondence_m} "
+                             f"for scales {self.scales}")
 
 
 @dataclass(frozen=True)
@@ -159,7 +160,7 @@ def register(new_points: np.ndarray, key_points: np.ndarray, guess: np.ndarray,
         voxel = params.voxel_m * scale
         source = voxel_cloud(new_points, voxel, params.normal_radius_voxels * voxel)
         target = voxel_cloud(key_points, voxel, params.normal_radius_voxels * voxel)
-        distance = params.correspondence_at(index)
+        distance = params.correspondence_m[index]
         loss = o3d.pipelines.registration.TukeyLoss(k=params.tukey_ratio * distance)
         result = o3d.pipelines.registration.registration_icp(
             source, target, distance, transform,
@@ -216,7 +217,7 @@ def point_to_plane_covariance(new_points: np.ndarray, key_points: np.ndarray, ke
 
     Weak directions (flat ground) keep their tiny eigenvalues, floored only to stay finite, so they show
     as large sigmas rather than disappear. Neighbouring points' errors are correlated, so the figure is
-    a lower bound on the true uncertainty."""
+    a lower bound on the true uncertainty (depth_motion scales it by params.covariance_scale)."""
     jacobian = point_to_plane_jacobian(new_points, key_normals, key_from_new)
     residual = np.sum(key_normals * (transform_points(key_from_new, new_points) - key_points), axis=1)
     information = jacobian.T @ jacobian
@@ -251,7 +252,7 @@ def depth_motion(key: DepthFrame, new: DepthFrame, params: DepthOdometryParams |
     covariance, _, rms = point_to_plane_covariance(registration.new_points[pairs[:, 0]],
                                                    registration.key_points[pairs[:, 1]],
                                                    registration.key_normals[pairs[:, 1]], registration.key_from_new)
-    return MotionEstimate(key_from_new=registration.key_from_new, covariance=covariance,
+    return MotionEstimate(key_from_new=registration.key_from_new, covariance=params.covariance_scale * covariance,
                           matches=len(registration.new_points), inliers=len(pairs), overlap=registration.fitness, rms=rms)
 
 
