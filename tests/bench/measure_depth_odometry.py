@@ -63,8 +63,13 @@ def warped(frame: DepthFrame, transform: np.ndarray) -> DepthFrame:
                       frame.fx, frame.fy, frame.cx, frame.cy)
 
 
+CONDITIONING = []   # per answered ICP pair: (information condition, largest translation sigma m, rotation sigma rad)
+
+
 def run_icp(key, new, guess):
     e = depth_motion(key, new, PARAMS, guess)
+    sigma = np.sqrt(np.diag(e.covariance))
+    CONDITIONING.append((np.linalg.cond(e.covariance), sigma[3:].max(), sigma[:3].max()))
     return e.key_from_new, e.overlap, e
 
 
@@ -190,6 +195,11 @@ def report(rows, args):
             cells.append(f"{step:.1f} m: {np.median(ok) if ok else float('nan'):5.2f} % ({len(sel) - len(ok)} failed)")
         print(f"  tilt {tilt:5.0f}: " + ", ".join(cells))
     icp = [r for r in rows if r[1] == "icp" and not r[10]]
+    if CONDITIONING:
+        c = np.array(CONDITIONING)
+        print(f"\nicp conditioning (answered pairs): information condition median {np.median(c[:, 0]):.0f}, max "
+              f"{c[:, 0].max():.0f}; largest sigma median {np.median(c[:, 1]) * 1000:.1f} mm, max {c[:, 1].max() * 1000:.1f} mm"
+              f" (translation) / {np.degrees(np.median(c[:, 2])):.3f} deg, max {np.degrees(c[:, 2].max()):.3f} deg")
     if icp:
         ratio = np.array([r[4] / r[9] for r in icp if r[9] > 0])
         print(f"\nicp translation error / its sigma: median {np.median(ratio):.1f}, p90 {np.percentile(ratio, 90):.1f}"

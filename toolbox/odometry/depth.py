@@ -31,6 +31,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 import open3d as o3d
+from scipy.spatial import cKDTree
 
 from .estimate import MotionEstimate, OdometryFailure
 
@@ -218,6 +219,11 @@ def point_to_plane_covariance(new_points: np.ndarray, key_points: np.ndarray, ke
     """(covariance 6 x 6, information J^T J, residual rms m) of the final correspondences (row i of
     new_points matched to row i of key_points): sigma^2 (J^T J)^-1 with sigma^2 the residual variance.
 
+    Our own J^T J rather than Open3D's get_information_matrix_from_point_clouds: that one is the
+    point-to-point information, linearised at the target points (a left perturbation in the
+    keyframe's axes), though its order is also (rotation, translation); this is point-to-plane, the
+    residual the ICP minimised, and a right perturbation of key_from_new as the contract wants.
+
     Weak directions (flat ground) keep their tiny eigenvalues, floored only to stay finite, so they show
     as large sigmas rather than disappear. Neighbouring points' errors are correlated, so the figure is
     a lower bound on the true uncertainty (depth_motion scales it by params.covariance_scale)."""
@@ -289,16 +295,16 @@ def depth_picture(key: DepthFrame, new: DepthFrame, estimate: MotionEstimate | N
     top = np.percentile(amplitude[new.valid], 99) if new.valid.any() else 1.0
     grey = np.clip(amplitude / max(top, 1e-9) * 255, 0, 255).astype(np.uint8)
     picture = cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR)
-    if estimate is None or not new.valid.any() or not key.valid.any():
-        return picture
-    from scipy.spatial import cKDTree
+    shown = new.valid & np.all(np.isfinite(new.points), axis=-1)
     key_points = key.points[key.valid].astype(np.float64)
-    moved = transform_points(estimate.key_from_new, new.points[new.valid].astype(np.float64))
+    key_points = key_points[np.all(np.isfinite(key_points), axis=1)]
+    if estimate is None or not shown.any() or not len(key_points):
+        return picture
+    moved = transform_points(estimate.key_from_new, new.points[shown].astype(np.float64))
     distance, _ = cKDTree(key_points).query(moved, distance_upper_bound=4 * match_distance_m)
     share = np.clip((distance - match_distance_m) / (3 * match_distance_m), 0, 1)
     colour = np.column_stack([np.zeros_like(share), 255 * (1 - share), 255 * share])
     colour[~np.isfinite(distance)] = (255, 0, 0)
-    colour[~np.isfinite(share) & np.isfinite(distance)] = (0, 0, 255)
-    blended = 0.5 * picture[new.valid].astype(np.float64) + 0.5 * colour
-    picture[new.valid] = np.clip(blended, 0, 255).astype(np.uint8)
+    blended = 0.5 * picture[shown].astype(np.float64) + 0.5 * colour
+    picture[shown] = np.clip(blended, 0, 255).astype(np.uint8)
     return picture
