@@ -3,8 +3,10 @@
 On 5 seeded worlds (24 x 24 m), a keyframe, then the rover driven forward 0.5, 1.0, 1.5 m and turned
 0, 5, 10 deg; the TOF on the mast at pan 0, tilted down. Each method gets the same dead-reckoning
 guess (the commanded step through the calibrated mount, with a seeded 5 % distance and 1 deg heading
-error, roll and pitch from the inclinometer with 0.2 deg error) and is scored against the true TOF poses: translation error (mm, % of the step), rotation
-error (deg), fitness / overlap, ms per call, and for ICP its sigma against its error.
+error (the simulated drive's is 2 %), roll and pitch from the inclinometer with 0.2 deg error; the
+height change is not in it) and is scored against the true TOF poses: translation error (mm, % of
+the step), rotation error (deg), fitness / overlap, ms per call, and for ICP its sigma against its
+error and its covariance's conditioning.
 
     icp          toolbox.odometry.depth.depth_motion (Open3D point-to-plane ICP, multi-scale, Tukey)
     o3d-rgbd     Open3D compute_rgbd_odometry, hybrid Jacobian, amplitude as intensity
@@ -155,7 +157,8 @@ def main():
                                          (time.perf_counter() - t) * 1000, np.nan, failure.reason, guess_err))
                             if name == "icp":
                                 print(f"  icp failed: world {seed} tilt {tilt:.0f} step {step} turn {turn:.0f}, guess "
-                                      f"{guess_err * 1000:.0f} mm {motion_error(truth, guess)[1]:.1f} deg off: {failure}",
+                                      f"{guess_err * 1000:.0f} mm {motion_error(truth, guess)[1]:.1f} deg off: "
+                                      f"{failure}",
                                       flush=True)
                             continue
                         ms = (time.perf_counter() - t) * 1000
@@ -198,7 +201,8 @@ def report(rows, args):
     if CONDITIONING:
         c = np.array(CONDITIONING)
         print(f"\nicp conditioning (answered pairs): information condition median {np.median(c[:, 0]):.0f}, max "
-              f"{c[:, 0].max():.0f}; largest sigma median {np.median(c[:, 1]) * 1000:.1f} mm, max {c[:, 1].max() * 1000:.1f} mm"
+              f"{c[:, 0].max():.0f}; largest sigma median {np.median(c[:, 1]) * 1000:.1f} mm, "
+              f"max {c[:, 1].max() * 1000:.1f} mm"
               f" (translation) / {np.degrees(np.median(c[:, 2])):.3f} deg, max {np.degrees(c[:, 2].max()):.3f} deg")
     if icp:
         ratio = np.array([r[4] / r[9] for r in icp if r[9] > 0])

@@ -17,7 +17,8 @@ from drivers.sr4000 import CONFIDENCE_FULL, wait_for_exposure
 from drivers.sr4000_emulator import MRPT_INTRINSICS, Sr4000Emulator
 from toolbox.odometry.depth import (DepthFrame, DepthOdometryParams, check_plausible, depth_motion, depth_picture,
                                     information_condition, motion_error, pinhole_depth, point_to_plane_covariance,
-                                    point_to_plane_jacobian, register, transform_points, usable_points, voxel_cloud)
+                                    point_to_plane_jacobian, refine_guess, register, transform_points, usable_points,
+                                    voxel_cloud)
 from toolbox.odometry.estimate import OdometryFailure, exp_se3
 
 TILT_DEG = -30.0              # the TOF looks along the heading, this far down: the best of -15..-40 (bench)
@@ -49,7 +50,8 @@ class TofRig:
 
 
 def _rotation_zyx(yaw: float, pitch: float, roll: float) -> np.ndarray:
-    cy, sy, cp, sp, cr, sr = math.cos(yaw), math.sin(yaw), math.cos(pitch), math.sin(pitch), math.cos(roll), math.sin(roll)
+    cy, sy = math.cos(yaw), math.sin(yaw)
+    cp, sp, cr, sr = math.cos(pitch), math.sin(pitch), math.cos(roll), math.sin(roll)
     return np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1]]) @ np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]]) \
         @ np.array([[1, 0, 0], [0, cr, -sr], [0, sr, cr]])
 
@@ -232,6 +234,18 @@ def test_register_recovers_a_known_motion():
     found = register(new, key, np.eye(4), DepthOdometryParams())
     moved, turned = motion_error(truth, found.key_from_new)
     assert moved < 0.005 and turned < 0.1 and found.fitness > 0.9
+
+
+def test_refine_guess_finds_the_height_dead_reckoning_missed():
+    key = bumpy_surface()
+    truth = exp_se3(np.r_[0, 0, 0, 0.0, -0.05, 0.6])
+    new = transform_points(np.linalg.inv(truth), key)
+    guess = truth.copy()
+    guess[:3, 3] += (0.0, 0.12, -0.06)                                     # 12 cm too low, 6 cm short
+    refined = refine_guess(new, key, guess, DepthOdometryParams())
+    assert motion_error(truth, refined)[0] < 0.03
+    np.testing.assert_allclose(refined[:3, :3], guess[:3, :3])             # only the translation moves
+    assert refine_guess(new, key, guess, DepthOdometryParams(seed_span_m=0.0)) is guess
 
 
 def test_check_plausible_refuses_by_reason():

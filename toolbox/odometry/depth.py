@@ -297,7 +297,8 @@ def depth_motion(key: DepthFrame, new: DepthFrame, params: DepthOdometryParams |
                                                    registration.key_points[pairs[:, 1]],
                                                    registration.key_normals[pairs[:, 1]], registration.key_from_new)
     return MotionEstimate(key_from_new=registration.key_from_new, covariance=params.covariance_scale * covariance,
-                          matches=len(registration.new_points), inliers=len(pairs), overlap=registration.fitness, rms=rms)
+                          matches=len(registration.new_points), inliers=len(pairs), overlap=registration.fitness,
+                          rms=rms)
 
 
 # ------------------------------------------------------------------------------ pictures and images
