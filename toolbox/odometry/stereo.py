@@ -47,14 +47,18 @@ class StereoOdometryParams(BaseModel):
     features: int = Field(1500, gt=0, description="features wanted in each left image")
     grid: tuple[int, int] = Field((12, 8), description="detection buckets (columns, rows): features spread over the view")
     fast_threshold: int = Field(7, ge=1, description="FAST corner threshold (grey levels); low, the grid keeps the best")
-    ratio: float = Field(0.8, gt=0, le=1, description="Lowe's ratio: best match distance below this share of the second")
+    ratio: float = Field(0.9, gt=0, le=1, description="Lowe's ratio: best match distance below this share of the second")
     max_hamming: int = Field(64, gt=0, description="largest descriptor distance (of 256 bits) accepted as a match")
-    stereo_row_px: float = Field(1.0, gt=0, description="rectified row difference allowed between left and right")
+    stereo_row_px: float = Field(1.5, gt=0, description="rectified row difference allowed between left and right")
     max_depth_m: float = Field(25.0, gt=0, description="farther points carry too little depth to place the camera")
     min_depth_m: float = Field(0.5, gt=0, description="nearer points are closer than the ground can be")
     search_radius_px: float = Field(40.0, gt=0, description="window around the guess's prediction of each feature")
-    ransac_threshold_px: float = Field(2.0, gt=0, description="RANSAC's reprojection error threshold")
-    ransac_iterations: int = Field(300, gt=0)
+    coarse_threshold_px: float = Field(4.0, gt=0, description="RANSAC's threshold on descriptor matches (to a "
+                                       "pyramid level's pixel, and the depth not yet refined)")
+    coarse_min_inliers: int = Field(12, gt=5, description="fewest descriptor-match inliers a coarse motion is "
+                                                          "taken from (the tracks then have to confirm it)")
+    ransac_threshold_px: float = Field(2.0, gt=0, description="RANSAC's reprojection error threshold on the tracks")
+    ransac_iterations: int = Field(500, gt=0, description="RANSAC draws")
     refine_threshold_px: float = Field(1.0, gt=0, description="inliers kept for the refined pose: residual below this")
     both_ways: bool = Field(True, description="refine with the new frame's 3D points seen in the keyframe too")
     min_inliers: int = Field(30, gt=5, description="fewest inliers (and features) a pose is trusted from")
@@ -64,6 +68,8 @@ class StereoOdometryParams(BaseModel):
     stereo_min_correlation: float = Field(0.8, gt=0, le=1, description="weakest normalised correlation accepted")
     stereo_margin: float = Field(0.05, ge=0, description="best correlation above any other disparity's by this")
     track_window: int = Field(15, ge=5, description="patch side (px) fitted when tracking keyframe points")
+    disparity_offset: bool = Field(True, description="fit the rig's disparity offset (its yaw error) with the pose")
+    disparity_offset_prior_px: float = Field(1.0, gt=0, description="the offset's prior spread (px)")
     track_shift_px: float = Field(8.0, gt=0, description="farthest a track may end from the coarse prediction")
 
 
@@ -142,22 +148,24 @@ def stereo_motion(key: StereoKeyframe, left: np.ndarray, right: np.ndarray, rig:
         raise OdometryFailure("no-overlap", f"{len(pairs)} of the keyframe's {usable} features with a depth "
                                             f"found again ({len(pairs) / max(usable, 1):.0%}): at least "
                                             f"{params.min_inliers} and {params.min_overlap:.0%} needed")
-    coarse, inliers = pnp_ransac(key.points[pairs[:, 0]], new.pixels[pairs[:, 1]], key.camera, params)
-    if inliers.sum() < params.min_inliers:
-        raise OdometryFailure("few-inliers", f"{len(pairs)} matches, {int(inliers.sum())} inliers: "
-                                             f"at least {params.min_inliers} needed")
+    coarse, inliers = pnp_ransac(key.points[pairs[:, 0]], new.pixels[pairs[:, 1]], key.camera, params,
+                                 params.coarse_threshold_px)
+    if inliers.sum() < params.coarse_min_inliers:
+        raise OdometryFailure("few-inliers", f"{len(pairs)} descriptor matches, {int(inliers.sum())} inliers: "
+                                             f"at least {params.coarse_min_inliers} needed")
     # 3. Every keyframe point the coarse motion puts in view, tracked to sub-pixel; depth of the
     #    tracked pixels from the new right image for the backward residuals.
     index, pixels_new = guided_tracks(key, left, coarse, params)
     points_new = stereo_points(pixels_new, left, right, rig, params)
-    key_from_new, inliers = pnp_ransac(key.points[index], pixels_new, key.camera, params)
+    key_from_new, inliers = pnp_ransac(key.points[index], pixels_new, key.camera, params,
+                                       params.ransac_threshold_px)
     if inliers.sum() < params.min_inliers:
         raise OdometryFailure("few-inliers", f"{len(index)} tracks, {int(inliers.sum())} inliers: "
                                              f"at least {params.min_inliers} needed")
     # 4. Refined on the inliers, both ways, with its covariance.
     refined, covariance, kept, rms = refine_motion(
         key_from_new, key.points[index[inliers]], pixels_new[inliers], points_new[inliers],
-        key.pixels[index[inliers]].astype(np.float64), key.camera, params)
+        key.pixels[index[inliers]].astype(np.float64), rig, params)
     if kept.sum() < params.min_inliers or not rms <= params.max_rms_px:
         raise OdometryFailure("diverged", f"refinement kept {int(kept.sum())} of {int(inliers.sum())} inliers at "
                                           f"rms {rms:.2f} px: at least {params.min_inliers} within "
@@ -310,15 +318,16 @@ def guided_tracks(key: StereoKeyframe, new_left: np.ndarray, key_from_new: np.nd
 
 # ---------------------------------------------------------------------------------- pose
 def pnp_ransac(points_key: np.ndarray, pixels_new: np.ndarray, camera: Intrinsics, params: StereoOdometryParams,
-               guess: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """(key_from_new 4 x 4, inlier mask) from keyframe 3D points and the new image's raw pixels."""
+               threshold_px: float) -> tuple[np.ndarray, np.ndarray]:
+    """(key_from_new 4 x 4, inlier mask) from keyframe 3D points and the new image's raw pixels,
+    inliers within threshold_px."""
     inliers = np.zeros(len(points_key), bool)
     if len(points_key) < 6:
         return np.eye(4), inliers
     ok, rvec, tvec, found = cv2.solvePnPRansac(
         np.ascontiguousarray(points_key, np.float64), np.ascontiguousarray(pixels_new, np.float64),
         camera.matrix, camera.distortion, iterationsCount=params.ransac_iterations,
-        reprojectionError=params.ransac_threshold_px, confidence=0.999, flags=cv2.SOLVEPNP_EPNP)
+        reprojectionError=threshold_px, confidence=0.999, flags=cv2.SOLVEPNP_EPNP)
     if not ok or found is None:
         return np.eye(4), inliers
     inliers[found.ravel()] = True
@@ -336,52 +345,83 @@ def reprojection_residuals(key_from_new: np.ndarray, points_key: np.ndarray, pix
     return np.concatenate([forward.ravel(), backward.ravel()])
 
 
-def gauss_newton(key_from_new: np.ndarray, residuals, iterations: int = 10) -> tuple[np.ndarray, np.ndarray]:
-    """Least squares over the right perturbation: key_from_new @ exp(delta) minimising
-    |residuals(pose)|^2; returns the pose and the Jacobian at it (numerical, central differences:
-    six more projections of a few hundred points, cheaper than deriving the distortion's)."""
-    step = 1e-6
-    pose = key_from_new
-    jacobian = np.zeros((0, 6))
+def gauss_newton(key_from_new: np.ndarray, residuals, extra: int = 0,
+                 iterations: int = 10) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Least squares over the right perturbation: key_from_new @ exp(delta) (and `extra` further
+    parameters, starting at 0) minimising |residuals(pose, x_extra)|^2. Returns the pose, the extra
+    parameters and the Jacobian at them (numerical, central differences: a few more projections of
+    a few hundred points, cheaper than deriving the distortion's)."""
+    steps = np.concatenate([np.full(6, 1e-6), np.full(extra, 1e-4)])
+    pose, x = key_from_new, np.zeros(extra)
+
+    def at(e):
+        return residuals(pose @ exp_se3(e[:6]), x + e[6:])
+
+    jacobian = np.zeros((0, 6 + extra))
     for _ in range(iterations):
-        r = residuals(pose)
-        jacobian = np.stack([(residuals(pose @ exp_se3(e)) - residuals(pose @ exp_se3(-e))) / (2 * step)
-                             for e in np.eye(6) * step], axis=1)
+        r = at(np.zeros(6 + extra))
+        jacobian = np.stack([(at(e) - at(-e)) / (2 * h) for e, h in zip(np.diag(steps), steps)], axis=1)
         delta = np.linalg.lstsq(jacobian, -r, rcond=None)[0]
-        pose = pose @ exp_se3(delta)
-        if np.linalg.norm(delta) < 1e-9:
+        pose, x = pose @ exp_se3(delta[:6]), x + delta[6:]
+        if np.linalg.norm(delta[:6]) < 1e-9:
             break
-    return pose, jacobian
+    return pose, x, jacobian
+
+
+def offset_points(points: np.ndarray, offset: float, rect: Rectified) -> np.ndarray:
+    """Left-frame points re-triangulated with `offset` px added to their disparity: each slides
+    along its ray to Z' = f B / (f B / Z + offset) (Z in the rectified frame)."""
+    if offset == 0:
+        return points
+    fb = rect.p1[0, 0] * rect.baseline
+    z = points @ rect.r1[2]
+    return points / (1 + offset * z / fb)[:, None]
 
 
 def refine_motion(key_from_new: np.ndarray, points_key: np.ndarray, pixels_new: np.ndarray,
-                  points_new: np.ndarray, pixels_key: np.ndarray, camera: Intrinsics,
+                  points_new: np.ndarray, pixels_key: np.ndarray, rig: StereoRig,
                   params: StereoOdometryParams) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
     """(refined key_from_new, its 6 x 6 covariance, correspondences kept, their rms px).
 
     Fitted to all correspondences (points_new NaN where the new pair gave no depth: forward only),
-    those beyond refine_threshold_px dropped, and fitted again. Covariance (J^T J)^-1 sigma^2,
-    sigma^2 from the residuals, over the contract's right perturbation (J is taken in it)."""
-    both = np.isfinite(points_new).all(axis=1) & params.both_ways
-    keep = np.ones(len(points_key), bool)
-    pose, jacobian, r = key_from_new, np.zeros((0, 6)), np.zeros(0)
-    for _ in range(2):
-        def residuals(p, keep=keep):
-            return reprojection_residuals(p, points_key[keep], pixels_new[keep], points_new[keep & both],
-                                          pixels_key[keep & both], camera)
-        if keep.sum() < 6:
-            break
-        pose, jacobian = gauss_newton(pose, residuals)
-        r = residuals(pose)
-        error = np.linalg.norm(project(apply_inverse(pose, points_key), camera) - pixels_new, axis=1)
+    those beyond refine_threshold_px dropped, and fitted again. With params.disparity_offset the
+    rig's disparity offset is fitted too: a calibration's small yaw error between the cameras adds
+    the same few tenths of a pixel to every disparity, which bends the keyframe's and the new
+    frame's point clouds alike and would otherwise show as a rotation of about 0.1 deg per metre;
+    seen from two places, the bend is not rigid, so the fit can take it out.
+    Covariance (J^T J)^-1 sigma^2, sigma^2 from the residuals, over the contract's right
+    perturbation (J is taken in it; the offset marginalised)."""
+    camera, rect = rig.left, rectifying(rig)
+    forward = np.ones(len(points_key), bool)
+    backward = np.isfinite(points_new).all(axis=1) & params.both_ways
+    extra = 1 if params.disparity_offset and backward.sum() >= params.min_inliers else 0
+    pose, offset = key_from_new, np.zeros(extra)
+    for _ in range(3):
+        if forward.sum() < 6:
+            return pose, np.full((6, 6), np.nan), forward, float("inf")
+        def residuals(p, x, forward=forward, backward=backward):
+            c = float(x[0]) if len(x) else 0.0
+            r = reprojection_residuals(p, offset_points(points_key[forward], c, rect), pixels_new[forward],
+                                       offset_points(points_new[backward], c, rect), pixels_key[backward], camera)
+            return np.append(r, x / params.disparity_offset_prior_px)
+        pose, offset, jacobian = gauss_newton(pose, residuals, extra)
+        r = residuals(pose, offset)
+        # Drop what the fit does not explain, either way (a wrong depth in either frame).
+        c = float(offset[0]) if extra else 0.0
+        errors = reprojection_residuals(pose, offset_points(points_key, c, rect), pixels_new,
+                                        offset_points(points_new, c, rect), pixels_key, camera).reshape(2, -1, 2)
         with np.errstate(invalid="ignore"):
-            keep = error <= params.refine_threshold_px
-    if keep.sum() < 6 or not np.isfinite(r).all() or not np.isfinite(pose).all():
-        return pose, np.full((6, 6), np.nan), keep, float("inf")
-    sigma2 = float(r @ r) / max(len(r) - 6, 1)
-    covariance = np.linalg.inv(jacobian.T @ jacobian) * sigma2
+            explained = np.linalg.norm(errors, axis=2) <= params.refine_threshold_px
+        if (explained[0] == forward).all() and (explained[1] & backward == backward).all():
+            break
+        forward, backward = explained[0], explained[1] & backward
+    if not np.isfinite(r).all() or not np.isfinite(pose).all():
+        return pose, np.full((6, 6), np.nan), forward, float("inf")
+    r = r[:len(r) - extra]
+    sigma2 = float(r @ r) / max(len(r) - 6 - extra, 1)
+    covariance = np.linalg.inv(jacobian.T @ jacobian)[:6, :6] * sigma2
     rms = float(np.sqrt(2 * np.mean(r * r)))
-    return pose, (covariance + covariance.T) / 2, keep, rms
+    return pose, (covariance + covariance.T) / 2, forward, rms
 
 
 def invert_rigid(pose: np.ndarray) -> np.ndarray:
