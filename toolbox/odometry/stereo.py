@@ -6,12 +6,17 @@ overlapping images).
     estimate, new_key = stereo_motion(key, left2, right2, rig, params, guess)
 
 stereo_motion's steps, each a small function below:
-  1. the new pair as a keyframe (features spread over the left image, depth from the right one)
-  2. match the keyframe's features with depth to the new left image's (window around the guess)
-  3. pose by PnP in RANSAC (the keyframe's 3D points against the new pixels)
-  4. refine on the inliers by Gauss-Newton on the reprojection error, both ways where the new
-     frame has depth too, and the covariance from its Jacobian
-Frames and covariance follow toolbox.odometry.estimate (key_from_new, right perturbation).
+  1. the new pair as a keyframe: ORB features bucketed over the left image, their depth by a
+     correlation search along the rectified row of the right image, refined by Lucas-Kanade
+  2. a coarse motion: keyframe descriptors matched to the new ones (ratio, mutual; in a window
+     around the guess's predictions if there is a guess), PnP in RANSAC
+  3. every keyframe point the coarse motion puts in view tracked into the new left image from its
+     prediction (Lucas-Kanade, forward-backward checked), PnP in RANSAC on these tracks
+  4. Gauss-Newton on the inliers' reprojection errors both ways (keyframe points in the new
+     image, the new pair's points of the same tracks in the keyframe image), with the rig's
+     disparity offset, and the covariance from the Jacobian
+Frames and covariance follow toolbox.odometry.estimate (key_from_new, right perturbation). Pixels
+are raw (distorted) image pixels; toolbox.camera.project and cv2's distortion vector handle k1, k2.
 """
 from __future__ import annotations
 
@@ -32,7 +37,8 @@ __all__ = ["StereoRig", "StereoOdometryParams", "StereoKeyframe", "stereo_keyfra
 
 @dataclass(frozen=True, eq=False)
 class StereoRig:
-    """The calibrated pair: p_right = right_from_left @ p_left (4 x 4, metres)."""
+    """The calibrated pair: p_right = right_from_left @ p_left (4 x 4, metres). Compared by identity:
+    keep one per calibration, and its rectification is computed once (see rectifying)."""
 
     left: Intrinsics
     right: Intrinsics
@@ -68,9 +74,10 @@ class StereoOdometryParams(BaseModel):
     stereo_min_correlation: float = Field(0.8, gt=0, le=1, description="weakest normalised correlation accepted")
     stereo_margin: float = Field(0.05, ge=0, description="best correlation above any other disparity's by this")
     track_window: int = Field(15, ge=5, description="patch side (px) fitted when tracking keyframe points")
-    disparity_offset: bool = Field(True, description="fit the rig's disparity offset (its yaw error) with the pose")
-    disparity_offset_prior_px: float = Field(1.0, gt=0, description="the offset's prior spread (px)")
     track_shift_px: float = Field(8.0, gt=0, description="farthest a track may end from the coarse prediction")
+    disparity_offset: bool = Field(True, description="fit the rig's disparity offset (its yaw error) with the pose")
+    disparity_offset_prior_px: float = Field(0.3, gt=0, description="the offset's prior spread (px): what the "
+                                             "calibration is trusted to, 0.3 px ~ 0.02 deg of yaw at 810 px")
 
 
 @dataclass(frozen=True, eq=False)
