@@ -274,6 +274,12 @@ def test_a_blank_image_has_few_features(look):
     assert failure.value.reason == "few-features" and "0 features" in failure.value.sentence
 
 
+def test_an_image_of_another_size_is_refused(look):
+    small = np.zeros((look.rig.left.height // 2, look.rig.left.width // 2), np.uint8)
+    with pytest.raises(ValueError, match="another resolution mode"):
+        S.stereo_keyframe(small, small, look.rig)
+
+
 def test_looking_the_other_way_does_not_overlap(look):
     left, right, _ = look.grab(-1.5, 0.0, 180.0)
     with pytest.raises(OdometryFailure) as failure:

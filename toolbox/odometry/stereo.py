@@ -127,6 +127,10 @@ class StereoKeyframe:
 def stereo_keyframe(left: np.ndarray, right: np.ndarray, rig: StereoRig,
                     params: StereoOdometryParams = StereoOdometryParams()) -> StereoKeyframe:
     """The features of a stereo pair's left image and their 3D points from the right image."""
+    for name, image, camera in (("left", left, rig.left), ("right", right, rig.right)):
+        if np.shape(image) != (camera.height, camera.width):
+            raise ValueError(f"{name} image is {np.shape(image)}, the rig's {name} camera "
+                             f"{camera.height} x {camera.width}: another resolution mode?")
     # Features over the whole left image.
     pixels, descriptors = bucketed_features(left, params.features, params.grid, params.fast_threshold)
     if len(pixels) < params.min_inliers:
