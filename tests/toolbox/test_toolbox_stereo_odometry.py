@@ -140,6 +140,20 @@ def test_predicted_pixels_of_the_identity_are_the_projections():
     assert (window == np.eye(20, dtype=bool)).all() and S.predicted_window(key, key.pixels, None, 1.0) is None
 
 
+def test_guided_tracks_follow_the_predicted_motion():
+    camera = ideal_rig().left
+    image = texture(7)
+    pixels, descriptors = F.bucketed_features(image, 300, (4, 4))
+    rays = np.column_stack([(pixels[:, 0] - camera.cx) / camera.fx, (pixels[:, 1] - camera.cy) / camera.fy,
+                            np.ones(len(pixels))])
+    key = S.StereoKeyframe(pixels, descriptors, 5.0 * rays, camera, image)   # a wall 5 m ahead
+    # The camera 0.04 m to the right: the wall moves 500 * 0.04 / 5 = 4 px to the left; the
+    # prediction is started 2 px off (a coarse motion) and the patch fit finds the rest.
+    index, tracked = S.guided_tracks(key, shifted(image, -4.0), g.rigid(None, (0.04 - 0.02, 0, 0)), PARAMS)
+    assert len(index) > 0.8 * len(pixels)
+    np.testing.assert_allclose(tracked - pixels[index], [[-4.0, 0.0]] * len(index), atol=0.1)
+
+
 def test_pnp_ransac_recovers_the_motion_despite_outliers():
     truth, points_key, pixels_new, rng = synthetic_motion()
     pixels_new = pixels_new + rng.normal(0, 0.2, pixels_new.shape)
