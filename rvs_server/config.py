@@ -11,10 +11,10 @@ import tomllib
 import typing
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Any, Literal, Mapping
+from typing import Annotated, Any, Generic, Literal, Mapping, TypeVar
 
 import annotated_types
-from pydantic import AfterValidator, BaseModel, BeforeValidator, ConfigDict, Field, ValidationError
+from pydantic import AfterValidator, BaseModel, BeforeValidator, ConfigDict, Field, ValidationError, model_validator
 from pydantic.fields import FieldInfo
 
 from .protocol import BadRequest, check_safe_name, format_value, option_name, parse_point, parse_range
@@ -332,4 +332,24 @@ def build_config(command: str, config: type[CommandConfig], defaults: Mapping[st
 # Re-exported for modules: Field with constraints is how options declare their allowed range.
 __all__ = ["Field", "Settings", "CommandConfig", "Range", "Point", "SafeName", "ConfigError", "TypeLabel",
            "bind_tokens", "build_config", "load_model", "read_toml", "validate_section",
-           "describe_allowed", "describe_default", "type_label", "option_name"]
+           "describe_allowed", "describe_default", "type_label", "option_name", "PerSensor"]
+
+
+T = TypeVar("T")
+
+
+class PerSensor(BaseModel, Generic[T]):
+    """A setting for each mapping sensor."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    tof: T
+    stereo: T
+
+    @model_validator(mode="before")
+    @classmethod
+    def _one_for_both(cls, value: Any) -> Any:
+        """A single value serves both sensors."""
+        return value if isinstance(value, (dict, PerSensor)) else {"tof": value, "stereo": value}
+
+    def of(self, sensor: str) -> T:
+        return getattr(self, sensor)
