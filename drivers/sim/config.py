@@ -123,11 +123,14 @@ class RoverSpeed(BaseModel):
 class SunSensor(BaseModel):
     """The simulated rover's sun sensor (world.toml [sun_sensor]): a fine sun sensor on the body,
     looking up, that reads the direction toward the sun with this angular error (1 sigma; fine sun
-    sensors are specified at 0.1-0.5 degrees) while the sun is within its field of view."""
+    sensors are specified at 0.1-0.5 degrees) while the sun is within its field of view. Averaging
+    readings takes the white noise down, never the alignment bias."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    noise_deg: float = Field(0.2, ge=0.0, le=10.0)
+    noise_deg: float = Field(0.2, ge=0.0, le=10.0, description="white noise of one reading, per axis")
+    bias_deg: float = Field(0.05, ge=0.0, le=10.0, description="what calibration left of the sensor's alignment "
+                            "to the body, per axis: drawn once per world, the same in every reading")
     half_fov_deg: float = Field(85.0, gt=0.0, le=90.0, description="the sun farther than this from the body's "
                                 "up axis is not seen")
 

@@ -64,6 +64,8 @@ class SimulatedTestbed:
         self._motion_rng = np.random.default_rng([self.world_config.seed, 17])
         self._inclinometer_rng = np.random.default_rng([self.world_config.seed, 23])  # readings between moves
         self._sun_sensor_rng = np.random.default_rng([self.world_config.seed, 29])
+        self._sun_bias = np.radians(np.random.default_rng([self.world_config.seed, 31]).normal(
+            0.0, self.world_config.sun_sensor.bias_deg, 2))
         self.odometer_m = 0.0
         self.contacts = 0
         self._world: World | None = None
@@ -210,17 +212,17 @@ class SimulatedTestbed:
 
     def sun_sensor(self) -> np.ndarray | None:
         """The unit vector toward the sun in the rover's body frame as its sun sensor reads it now
-        (truth turned by a random angle of world.toml [sun_sensor] noise_deg, 1 sigma), or None
-        when the sun stands outside the sensor's field of view."""
+        (world.toml [sun_sensor]: truth turned by the sensor's fixed alignment bias and a reading's
+        white noise), or None when the sun stands outside the sensor's field of view."""
         config = self.world_config.sun_sensor
         body = self.rover.body_to_world[:3, :3].T @ np.asarray(self.world.sun.direction(), dtype=np.float64)
         if math.degrees(math.acos(float(np.clip(body[2], -1.0, 1.0)))) > config.half_fov_deg:
             return None
-        # Two perpendicular error angles, each N(0, noise): the reading is off by noise_deg per axis.
+        # Error angles about two axes across the sun direction, each N(0, sigma) per axis.
         across = np.cross(body, [1.0, 0.0, 0.0] if abs(body[0]) < 0.9 else [0.0, 1.0, 0.0])
         across /= np.linalg.norm(across)
         other = np.cross(body, across)
-        tilt = np.radians(self._sun_sensor_rng.normal(0.0, config.noise_deg, 2))
+        tilt = self._sun_bias + np.radians(self._sun_sensor_rng.normal(0.0, config.noise_deg, 2))
         reading = body + tilt[0] * across + tilt[1] * other
         return reading / np.linalg.norm(reading)
 

@@ -27,6 +27,7 @@ import numpy as np
 
 from drivers.sim.forward_camera import ForwardCamera, ForwardCameraConfig
 from drivers.sim.motion import dead_reckon, turn_and_distance
+from drivers.sim.testbed import INCLINOMETER_NOISE_DEG
 from toolbox.geometry import RoverPose
 
 from ..protocol import BadRequest, DeviceError, Timeout
@@ -41,7 +42,7 @@ POSE_POLL_S = 0.5
 NO_FORWARD_CAMERA = "the forward camera is the simulated rover's body-fixed camera and the devices are real"
 
 __all__ = ["Drive", "DriveGuard", "DriveMode", "DriveStopped", "ForwardCamera", "ForwardCameraConfig", "GncDrive", "Moved", "Pace", "RoverDevice",
-           "SimulatedDrive", "WorldEdge", "dead_reckon"]
+           "SimulatedDrive", "SunReading", "WorldEdge", "dead_reckon"]
 
 
 @dataclass(frozen=True)
@@ -251,6 +252,17 @@ class _Pose:
 
     estimate: RoverPose | None = None   # None: not asked for yet
     reports: int = 0                    # pose commands received: a GNC drive waits for the next one
+    epoch: int = 0                      # a pose given or a reset: what odometry measured before is void
+
+
+@dataclass(frozen=True)
+class SunReading:
+    """The sun sensor's reading and what it is measured against (toolbox/odometry/sun.py)."""
+
+    body: np.ndarray       # unit vector toward the sun in the rover's body frame, as read
+    world: np.ndarray      # the sun's unit vector in the world frame, from the ephemeris
+    sigma: float           # the sensor's 1-sigma angular error, radians
+    tilt_sigma: float      # the inclinometer's 1-sigma roll and pitch error, radians
 
 
 class RoverDevice:
@@ -302,6 +314,16 @@ class RoverDevice:
         """The GNC says where the rover stands: the new estimate, and the end of a GNC drive's wait."""
         self._pose.estimate = pose
         self._pose.reports += 1
+        self._pose.epoch += 1
+
+    @property
+    def epoch(self) -> int:
+        """Changes when a pose is given or the devices are reset: a visual odometry keyframe taken
+        in an earlier epoch no longer ties to the estimate."""
+        return self._pose.epoch
+
+    def new_epoch(self) -> None:
+        self._pose.epoch += 1
 
     def wait_for_pose(self, job: "JobContext", reports: int, timeout_s: float, after: str) -> None:
         """Wait (in simulated time; `break` ends it) until the GNC reports a pose after the count of
@@ -332,6 +354,21 @@ class RoverDevice:
             return self.testbed.inclinometer()
         pose = self.pose_estimate
         return pose.roll, pose.pitch
+
+    def sun_reading(self, samples: int = 1) -> SunReading | None:
+        """Simulated: the rover's sun sensor, `samples` readings averaged (the rover stands still
+        while it looks), and the world's sun (the ephemeris); None when the sun is outside the
+        sensor's view, and with real devices (the test bed has no sun sensor yet)."""
+        if not self.simulated:
+            return None
+        readings = [self.testbed.sun_sensor() for _ in range(samples)]
+        if any(r is None for r in readings):
+            return None
+        mean = np.mean(readings, axis=0)
+        sensor = self.testbed.world_config.sun_sensor   # its data sheet
+        sigma = math.hypot(math.radians(sensor.noise_deg) / math.sqrt(samples), math.radians(sensor.bias_deg))
+        return SunReading(mean / np.linalg.norm(mean), np.asarray(self.testbed.world.sun.direction(), dtype=np.float64),
+                          sigma, math.radians(INCLINOMETER_NOISE_DEG))
 
     def hand_over_sensors(self) -> None:
         """A rover that starts to move gives the job's PTU and sensors to the activities that guard

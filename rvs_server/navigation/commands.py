@@ -11,14 +11,14 @@ from __future__ import annotations
 import csv
 import math
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, Any, Generic, Literal, Sequence, TypeVar
+from typing import TYPE_CHECKING, Annotated, Any, Literal, Sequence
 
 import cv2
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, PlainValidator, PositiveFloat, ValidationError, model_validator
 from scipy.ndimage import binary_fill_holes
 
-from rvs_server.config import CommandConfig, Point, Range, SafeName, Settings, TypeLabel
+from rvs_server.config import CommandConfig, PerSensor, Point, Range, SafeName, Settings, TypeLabel
 from rvs_server.devices import DriveError
 from rvs_server.dispatch import Call, Module
 from rvs_server.files import atomic_file
@@ -37,28 +37,10 @@ from toolbox.planning import (MapLayers, PlanningParams, blank_map_spanning, cel
 if TYPE_CHECKING:
     from rvs_server.host import Host
 
-T = TypeVar("T")
 Metres = Annotated[float, Field(ge=0)]
 Length = Annotated[float, Field(gt=0)]
 FarHazardPolicy = Literal["hazard", "unconfirmed"]
 HolePolicy = Literal["hazard", "unknown"]
-
-
-class PerSensor(BaseModel, Generic[T]):
-    """A setting for each mapping sensor."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
-    tof: T
-    stereo: T
-
-    @model_validator(mode="before")
-    @classmethod
-    def _one_for_both(cls, value: Any) -> Any:
-        """A single value serves both sensors."""
-        return value if isinstance(value, (dict, PerSensor)) else {"tof": value, "stereo": value}
-
-    def of(self, sensor: str) -> T:
-        return getattr(self, sensor)
 
 
 class OperatingArea(BaseModel):
@@ -130,6 +112,9 @@ class NavigationSettings(Settings):
                                       "its error exceed the room between the footprint and the hazards; 0: off")
     footprint_m: tuple[PositiveFloat, PositiveFloat] = Field((0.55, 0.50), description="the rover's footprint, "
                                                              "length x width, metres, for the drive-error cut")
+    orient: bool = Field(True, description="each cycle begins with an orient look along the heading (visual "
+                         "odometry since the last cycle's, the sun's heading; orient.toml): the map alignment starts "
+                         "from it instead of dead reckoning")
     route_hysteresis: float = Field(0.25, ge=0, description="navigate keeps its last route while it is clear and "
                                     "costs at most this fraction more than a new plan; 0: replan from scratch")
     min_progress_m: float = Field(0.15, gt=0, description="a safe part shorter than this is a stall")

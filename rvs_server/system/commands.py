@@ -202,6 +202,7 @@ def abort(call: Call, cfg: JobChoice) -> dict[str, Any]:
 @module.job("reset", resumable=False)
 def reset(ctx, cfg: Any) -> dict[str, Any]:
     """Check every device's status, then re-initialise it."""
+    ctx.devices.rover.new_epoch()   # the next orient takes a new keyframe
     devices = list(ctx.devices)
     result: dict[str, Any] = {}
     for i, device in enumerate(devices):

@@ -11,11 +11,13 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[2]
 PACKAGES = ("rvs_server", "toolbox", "drivers", "clients")
-CAPABILITIES = ("system", "ptu", "imaging", "mapping", "navigation", "hopping", "routes", "simulation")
+CAPABILITIES = ("system", "ptu", "imaging", "mapping", "navigation", "hopping", "routes", "hazard", "orientation",
+                "simulation")
 # A capability reaches another only through these modules (its named interface).
 INTERFACES = {
     ("navigation", "mapping"): {"rvs_server.mapping"},
     ("routes", "mapping"): {"rvs_server.mapping"},
+    ("navigation", "orientation"): {"rvs_server.orientation"},
 }
 
 

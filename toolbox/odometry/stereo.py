@@ -152,7 +152,48 @@ def stereo_motion(key: StereoKeyframe, left: np.ndarray, right: np.ndarray, rig:
     `guess` (4 x 4 key_from_new, from dead reckoning) narrows the search; None searches everywhere."""
     # 1. The new pair as a keyframe.
     new = stereo_keyframe(left, right, rig, params)
-    # 2. A coarse motion from descriptor matches (in the guess's window) by PnP in RANSAC.
+    # 2. A coarse motion from descriptor matches (in the guess's window) by PnP in RANSAC; where
+    #    descriptors find too little (a rock close ahead changes every patch), the guess itself.
+    try:
+        coarse = coarse_motion(key, new, params, guess)
+    except OdometryFailure as failure:
+        if guess is None:
+            raise
+        coarse, descriptors_failed = guess, failure
+    else:
+        descriptors_failed = None
+    # 3. Every keyframe point the coarse motion puts in view, tracked to sub-pixel (from the guess:
+    #    as far as the descriptors' search window); depth of the tracked pixels from the new right
+    #    image for the backward residuals.
+    tracking = params if descriptors_failed is None else params.model_copy(
+        update={"track_shift_px": params.search_radius_px})
+    index, pixels_new = guided_tracks(key, left, coarse, tracking)
+    points_new = stereo_points(pixels_new, left, right, rig, params)
+    key_from_new, inliers = pnp_ransac(key.points[index], pixels_new, key.camera, params,
+                                       params.ransac_threshold_px)
+    if inliers.sum() < params.min_inliers:
+        if descriptors_failed is not None:   # neither the descriptors nor the guess found the keyframe
+            raise descriptors_failed
+        raise OdometryFailure("few-inliers", f"{len(index)} tracks, {int(inliers.sum())} inliers: "
+                                             f"at least {params.min_inliers} needed")
+    # 4. Refined on the inliers, both ways, with its covariance.
+    refined, covariance, kept, rms = refine_motion(
+        key_from_new, key.points[index[inliers]], pixels_new[inliers], points_new[inliers],
+        key.pixels[index[inliers]].astype(np.float64), rig, params)
+    if kept.sum() < params.min_inliers or not rms <= params.max_rms_px:
+        raise OdometryFailure("diverged", f"refinement kept {int(kept.sum())} of {int(inliers.sum())} inliers at "
+                                          f"rms {rms:.2f} px: at least {params.min_inliers} within "
+                                          f"{params.max_rms_px} px needed")
+    usable = int(key.with_depth.sum())
+    estimate = MotionEstimate(refined, covariance, matches=len(index), inliers=int(kept.sum()),
+                              overlap=min(1.0, int(kept.sum()) / max(usable, 1)), rms=rms)
+    return estimate, new
+
+
+def coarse_motion(key: StereoKeyframe, new: StereoKeyframe, params: StereoOdometryParams,
+                  guess: np.ndarray | None) -> np.ndarray:
+    """key_from_new from descriptor matches by PnP in RANSAC at the coarse threshold; OdometryFailure
+    (no-overlap, few-inliers) when they are too few."""
     pairs = descriptor_matches(key, new, params, guess)
     usable = int(key.with_depth.sum())
     if len(pairs) < params.min_inliers or len(pairs) < params.min_overlap * usable:
@@ -164,26 +205,7 @@ def stereo_motion(key: StereoKeyframe, left: np.ndarray, right: np.ndarray, rig:
     if inliers.sum() < params.coarse_min_inliers:
         raise OdometryFailure("few-inliers", f"{len(pairs)} descriptor matches, {int(inliers.sum())} inliers: "
                                              f"at least {params.coarse_min_inliers} needed")
-    # 3. Every keyframe point the coarse motion puts in view, tracked to sub-pixel; depth of the
-    #    tracked pixels from the new right image for the backward residuals.
-    index, pixels_new = guided_tracks(key, left, coarse, params)
-    points_new = stereo_points(pixels_new, left, right, rig, params)
-    key_from_new, inliers = pnp_ransac(key.points[index], pixels_new, key.camera, params,
-                                       params.ransac_threshold_px)
-    if inliers.sum() < params.min_inliers:
-        raise OdometryFailure("few-inliers", f"{len(index)} tracks, {int(inliers.sum())} inliers: "
-                                             f"at least {params.min_inliers} needed")
-    # 4. Refined on the inliers, both ways, with its covariance.
-    refined, covariance, kept, rms = refine_motion(
-        key_from_new, key.points[index[inliers]], pixels_new[inliers], points_new[inliers],
-        key.pixels[index[inliers]].astype(np.float64), rig, params)
-    if kept.sum() < params.min_inliers or not rms <= params.max_rms_px:
-        raise OdometryFailure("diverged", f"refinement kept {int(kept.sum())} of {int(inliers.sum())} inliers at "
-                                          f"rms {rms:.2f} px: at least {params.min_inliers} within "
-                                          f"{params.max_rms_px} px needed")
-    estimate = MotionEstimate(refined, covariance, matches=len(index), inliers=int(kept.sum()),
-                              overlap=min(1.0, int(kept.sum()) / max(usable, 1)), rms=rms)
-    return estimate, new
+    return coarse
 
 
 # ---------------------------------------------------------------------------------- stereo depth

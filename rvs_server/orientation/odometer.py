@@ -1,0 +1,250 @@
+"""The server's visual odometer: a keyframe and the belief of where the rover stood when it was
+taken; each look is matched against the keyframe, the rover's belief carried through the measured
+motion, the sun sensor's heading fused in, and the look kept as the next keyframe only when the
+keyframe is about to be lost (so small steps do not add up the error of every step).
+
+The chain starts anew (a keyframe with zero motion) on the first look after start, a `pose`, a
+`reset` (the rover device's epoch) or a change of sensor. A look that cannot be matched leaves the
+belief alone and becomes the keyframe at the dead-reckoned pose, with the uncertainty of being lost.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from toolbox.geometry import RoverPose, invert
+from toolbox.odometry.chain import HeadingFix, PlanarBelief, carry, fuse_heading, wrap
+from toolbox.odometry.depth import DepthOdometryParams, depth_motion, depth_picture
+from toolbox.odometry.estimate import MotionEstimate, OdometryFailure
+from toolbox.odometry.stereo import StereoOdometryParams, match_picture, stereo_keyframe, stereo_motion
+from toolbox.odometry.sun import MAX_ELEVATION_DEG, sun_heading, sun_heading_sigma
+
+from .look import Look
+from .settings import OrientSettings
+
+if TYPE_CHECKING:
+    from rvs_server.host import Host
+
+START_SIGMA_M = 0.05      # a chain's first keyframe: where dead reckoning or the GNC put the rover
+START_SIGMA_DEG = 2.0
+
+
+@dataclass
+class Keyframe:
+    sensor: str
+    epoch: int
+    data: Any                      # StereoKeyframe or DepthFrame
+    belief: PlanarBelief           # the rover when it was taken
+    camera_to_rover: np.ndarray
+    number: int
+
+
+@dataclass
+class LastLook:
+    """Where dead reckoning's guess for the next look starts: the last look's camera motion from
+    the keyframe, its camera, and the server's estimate right after it (the belief when it was
+    applied), which the drives since have dead-reckoned from."""
+
+    key_from_camera: np.ndarray
+    camera_to_rover: np.ndarray
+    estimate_after: np.ndarray
+
+    def guess(self, estimate: np.ndarray, camera_to_rover: np.ndarray) -> np.ndarray:
+        """key_from_new of a look at `estimate` with `camera_to_rover`, by dead reckoning from the last."""
+        return (self.key_from_camera @ invert(self.camera_to_rover) @ invert(self.estimate_after) @ estimate
+                @ camera_to_rover)
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """One look's result: the belief now (fused), and how it came about."""
+
+    belief: PlanarBelief
+    previous: PlanarBelief | None        # the last orient's belief: dx, dy, dheading are against it
+    keyframe: bool                       # first look of a chain: zero motion
+    rekeyed: bool                        # this look is the keyframe from now on
+    keyframe_number: int                 # the keyframe the motion was measured from
+    motion: MotionEstimate | None
+    odometry: PlanarBelief | None        # the belief before the sun was fused
+    sun: HeadingFix | None
+    sources: list[str]
+    odometry_s: float
+    picture: np.ndarray | None
+
+
+class OrientFailed(Exception):
+    """A look that could not be matched (OdometryFailure) with what the product shows of it."""
+
+    def __init__(self, failure: OdometryFailure, picture: np.ndarray | None, keyframe_number: int):
+        super().__init__(str(failure))
+        self.failure, self.picture, self.keyframe_number = failure, picture, keyframe_number
+
+
+@dataclass
+class Odometer:
+    keyframe: Keyframe | None = None
+    last: PlanarBelief | None = None      # the last look's belief: dx, dy, dheading are against it
+    reference: LastLook | None = None
+    last_look: tuple[Keyframe, LastLook] | None = None   # the last look, when it is not the keyframe
+    keyframes: int = 0
+    stereo_params: StereoOdometryParams = field(default_factory=StereoOdometryParams)
+    depth_params: DepthOdometryParams = field(default_factory=DepthOdometryParams)
+
+    # ------------------------------------------------------------------------------------------
+    def orient(self, look: Look, settings: OrientSettings, epoch: int, apply: bool = True) -> Outcome:
+        """Match the look against the keyframe and say where the rover stands; OrientFailed when
+        it cannot be matched (the belief stays where it was). `apply`: the caller makes the belief
+        the server's estimate (the next look's dead reckoning starts from it)."""
+        key = self.keyframe
+        estimate = _level(look.estimate, look.roll, look.pitch)
+        if key is None or key.epoch != epoch or key.sensor != look.sensor or self.reference is None:
+            return self._start(look, estimate, epoch)
+        started = time.perf_counter()
+        guess = self.reference.guess(estimate, look.camera_to_rover)
+        try:
+            motion, data = self._match(key, look, guess)
+        except OdometryFailure as failure:
+            # The keyframe is too far behind: the last look, nearer, may still hold (it becomes the
+            # keyframe this look was measured from).
+            fallback = self._from_last_look(look, estimate, epoch)
+            if fallback is None:
+                picture = self._picture(key, look, None)
+                self._lost(look, estimate, epoch, key, guess, settings)
+                raise OrientFailed(failure, picture, key.number) from None
+            key, motion, data = fallback
+        odometry_s = time.perf_counter() - started
+        carried = carry(key.belief, key.camera_to_rover, motion.key_from_new,
+                        motion.covariance * settings.covariance_scale, look.camera_to_rover)
+        carried = PlanarBelief(_level(RoverPose.from_matrix(carried.rover_to_world), look.roll, look.pitch),
+                               carried.covariance)
+        belief, fix = self._fuse_sun(carried, look, settings)
+        sources = [look.sensor] + (["sun"] if fix is not None and fix.used else [])
+        number = key.number
+        rekeyed = self._wants_new_keyframe(key, motion, belief, settings)
+        after = belief.rover_to_world if apply else estimate
+        if rekeyed:
+            self.keyframes += 1
+            self.keyframe = Keyframe(look.sensor, epoch, data, belief, look.camera_to_rover, self.keyframes)
+            self.reference = LastLook(np.eye(4), look.camera_to_rover, after)
+            self.last_look = None
+        else:
+            self.reference = LastLook(motion.key_from_new, look.camera_to_rover, after)
+            self.last_look = (Keyframe(look.sensor, epoch, data, belief, look.camera_to_rover, 0),
+                              LastLook(np.eye(4), look.camera_to_rover, after))
+        previous, self.last = self.last, belief
+        return Outcome(belief, previous, False, rekeyed, number, motion, carried, fix, sources, odometry_s,
+                       self._picture(key, look, motion))
+
+    def shift(self, correction: np.ndarray) -> None:
+        """Something better than odometry (navigate's alignment to its map) moved the estimate by
+        `correction` (world frame, 4 x 4): move the chain with it."""
+        key, reference = self.keyframe, self.reference
+        if key is not None:
+            key.belief = PlanarBelief(correction @ key.belief.rover_to_world, key.belief.covariance)
+        if reference is not None:
+            reference.estimate_after = correction @ reference.estimate_after
+        if self.last_look is not None:
+            frame, last = self.last_look
+            frame.belief = PlanarBelief(correction @ frame.belief.rover_to_world, frame.belief.covariance)
+            last.estimate_after = correction @ last.estimate_after
+        if self.last is not None:
+            self.last = PlanarBelief(correction @ self.last.rover_to_world, self.last.covariance)
+
+    # ------------------------------------------------------------------------------------------
+    def _start(self, look: Look, estimate: np.ndarray, epoch: int) -> Outcome:
+        started = time.perf_counter()
+        try:
+            data = self._frame(look)
+        except OdometryFailure as failure:   # nothing to keep: the next look tries to start again
+            raise OrientFailed(failure, None, 0) from None
+        belief = PlanarBelief(estimate, np.diag([START_SIGMA_M ** 2, START_SIGMA_M ** 2,
+                                                 math.radians(START_SIGMA_DEG) ** 2]))
+        self.keyframes += 1
+        self.keyframe = Keyframe(look.sensor, epoch, data, belief, look.camera_to_rover, self.keyframes)
+        self.reference = LastLook(np.eye(4), look.camera_to_rover, estimate)
+        self.last, self.last_look = belief, None
+        return Outcome(belief, None, True, True, self.keyframes, None, None, None, [], time.perf_counter() - started,
+                       self._picture(self.keyframe, look, None))
+
+    def _from_last_look(self, look: Look, estimate: np.ndarray, epoch: int) -> tuple[Keyframe, MotionEstimate, Any] | None:
+        """The look measured from the last look instead of the keyframe, the last look promoted to
+        keyframe; None when there is no such look or it does not match either."""
+        if self.last_look is None or self.last_look[0].epoch != epoch:
+            return None
+        frame, reference = self.last_look
+        try:
+            motion, data = self._match(frame, look, reference.guess(estimate, look.camera_to_rover))
+        except OdometryFailure:
+            return None
+        self.keyframes += 1
+        frame.number = self.keyframes
+        self.keyframe, self.reference, self.last_look = frame, reference, None
+        return frame, motion, data
+
+    def _lost(self, look: Look, estimate: np.ndarray, epoch: int, key: Keyframe, guess: np.ndarray,
+              settings: OrientSettings) -> None:
+        """The look becomes the keyframe at the dead-reckoned pose, as unsure as being lost (the
+        estimate stays dead reckoning's); if even it has nothing to match, the old keyframe stays
+        (the next look may find it again)."""
+        try:
+            data = self._frame(look)
+        except OdometryFailure:
+            return
+        dead_reckoned = key.belief.rover_to_world @ key.camera_to_rover @ guess @ invert(look.camera_to_rover)
+        lost = np.diag([settings.lost_sigma_m ** 2, settings.lost_sigma_m ** 2, math.radians(settings.lost_sigma_deg) ** 2])
+        belief = PlanarBelief(_level(RoverPose.from_matrix(dead_reckoned), look.roll, look.pitch),
+                              key.belief.covariance + lost)
+        self.keyframes += 1
+        self.keyframe = Keyframe(look.sensor, epoch, data, belief, look.camera_to_rover, self.keyframes)
+        self.reference, self.last_look = LastLook(np.eye(4), look.camera_to_rover, estimate), None
+
+    def _frame(self, look: Look) -> Any:
+        if look.sensor == "stereo":
+            return stereo_keyframe(look.left, look.right, look.rig, self.stereo_params)
+        return look.depth
+
+    def _match(self, key: Keyframe, look: Look, guess: np.ndarray) -> tuple[MotionEstimate, Any]:
+        if look.sensor == "stereo":
+            return stereo_motion(key.data, look.left, look.right, look.rig, self.stereo_params, guess=guess)
+        return depth_motion(key.data, look.depth, self.depth_params, guess=guess), look.depth
+
+    def _picture(self, key: Keyframe, look: Look, motion: MotionEstimate | None) -> np.ndarray | None:
+        if look.sensor == "stereo":
+            return match_picture(key.data, look.left, motion, self.stereo_params)
+        return depth_picture(key.data, look.depth, motion)
+
+    @staticmethod
+    def _fuse_sun(belief: PlanarBelief, look: Look, settings: OrientSettings) -> tuple[PlanarBelief, HeadingFix | None]:
+        sun = look.sun
+        if not settings.sun or sun is None:
+            return belief, None
+        elevation = math.asin(float(np.clip(sun.world[2], -1.0, 1.0)))
+        if math.degrees(elevation) > MAX_ELEVATION_DEG:
+            return belief, None
+        heading = sun_heading(sun.body, look.roll, look.pitch, sun.world)
+        sigma = sun_heading_sigma(sun.sigma, sun.tilt_sigma, elevation)
+        return fuse_heading(belief, heading, sigma, settings.sun_gate_sigmas)
+
+    @staticmethod
+    def _wants_new_keyframe(key: Keyframe, motion: MotionEstimate, belief: PlanarBelief,
+                            settings: OrientSettings) -> bool:
+        """Keep the keyframe while the next step will still find it: re-key when little of it was
+        found again, or the rover is far from it or has turned away."""
+        here, there = belief.pose, key.belief.pose
+        return (motion.overlap < settings.rekey_overlap.of(key.sensor)
+                or (key.sensor == "stereo" and motion.inliers < settings.rekey_inliers)
+                or math.hypot(here.x - there.x, here.y - there.y) > settings.max_keyframe_m.of(key.sensor)
+                or abs(math.degrees(wrap(here.heading - there.heading))) > settings.max_keyframe_deg)
+
+
+def _level(pose: RoverPose, roll: float, pitch: float) -> np.ndarray:
+    """The pose with the inclinometer's roll and pitch: those are absolute, odometry's drift."""
+    return RoverPose(pose.x, pose.y, pose.z, pose.heading, roll, pitch).to_world()
+
+
+def odometer_of(server: "Host") -> Odometer:
+    return server.state_of("orientation")

@@ -1,0 +1,65 @@
+"""orient's product: orient.json (the belief, the motion and its covariance, the keyframe, which
+sources were fused), the look's picture (tracks or depth overlap), and the simulator's truth."""
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from rvs_server.products.rasters import write_png
+from toolbox.odometry.chain import PlanarBelief
+
+from .look import Look
+from .odometer import OrientFailed, Outcome
+
+
+def _belief(belief: PlanarBelief | None) -> dict[str, Any] | None:
+    if belief is None:
+        return None
+    pose = belief.pose
+    sigma_xy, sigma_heading = belief.sigmas()
+    return {"x": pose.x, "y": pose.y, "z": pose.z, "heading_deg": math.degrees(pose.heading),
+            "roll_deg": math.degrees(pose.roll), "pitch_deg": math.degrees(pose.pitch),
+            "covariance_xy_heading": belief.covariance.tolist(), "sigma_xy_m": sigma_xy,
+            "sigma_heading_deg": math.degrees(sigma_heading)}
+
+
+def _look(look: Look) -> dict[str, Any]:
+    estimate = look.estimate
+    return {"sensor": look.sensor, "pan_tilt_deg": list(look.pan_tilt_deg),
+            "estimate_before": {"x": estimate.x, "y": estimate.y, "heading_deg": math.degrees(estimate.heading)},
+            "inclinometer_deg": {"roll": math.degrees(look.roll), "pitch": math.degrees(look.pitch)},
+            "sun_sensor": None if look.sun is None else {"body": look.sun.body.tolist(), "world": look.sun.world.tolist(),
+                                                          "sigma_deg": math.degrees(look.sun.sigma)}}
+
+
+def write_outcome(product: Any, look: Look, outcome: Outcome, applied: bool) -> None:
+    motion = outcome.motion
+    fix = outcome.sun
+    data = {"look": _look(look), "applied": applied, "keyframe": outcome.keyframe, "rekeyed": outcome.rekeyed,
+            "keyframe_number": outcome.keyframe_number, "sources": outcome.sources,
+            "belief": _belief(outcome.belief), "odometry_only": _belief(outcome.odometry),
+            "previous": _belief(outcome.previous),
+            "motion": None if motion is None else {
+                "key_from_new": motion.key_from_new.tolist(), "covariance_rotvec_translation": motion.covariance.tolist(),
+                "matches": motion.matches, "inliers": motion.inliers, "overlap": motion.overlap, "rms": motion.rms},
+            "sun": None if fix is None else {"heading_deg": math.degrees(fix.heading), "sigma_deg": math.degrees(fix.sigma),
+                                             "innovation_sigmas": fix.innovation_sigmas, "used": fix.used},
+            "odometry_ms": 1000.0 * outcome.odometry_s}
+    product.write_json("orient.json", data, "the rover's pose after this look, how it was measured and how sure it is")
+    _picture(product, outcome.picture)
+
+
+def write_failure(product: Any, look: Look, failed: OrientFailed) -> None:
+    product.write_json("orient.json", {"look": _look(look), "failed": {"reason": failed.failure.reason,
+                                                                       "sentence": failed.failure.sentence},
+                                       "keyframe_number": failed.keyframe_number},
+                       "why this look could not be matched against the keyframe (the pose estimate is unchanged)")
+    _picture(product, failed.picture)
+
+
+def _picture(product: Any, picture: np.ndarray | None) -> None:
+    if picture is not None:
+        write_png(product.add("look.png", "the look: the features tracked from the keyframe (stereo) or the depth "
+                              "overlap (TOF)"), picture[..., ::-1])   # the toolbox draws BGR

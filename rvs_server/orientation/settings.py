@@ -1,0 +1,37 @@
+"""configs/orient.toml: how orient looks, when it keeps its keyframe, what it fuses."""
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+from pydantic import Field
+
+from rvs_server.config import PerSensor, Settings
+
+Sensor = Literal["stereo", "tof"]
+Share = Annotated[float, Field(ge=0, le=1)]
+Tilt = Annotated[float, Field(ge=-80, le=10)]
+Positive = Annotated[float, Field(gt=0)]
+
+
+class OrientSettings(Settings):
+    sensor: Sensor = Field("stereo", description="the sensor orient looks with unless --sensor says")
+    tilt_deg: PerSensor[Tilt] = Field(PerSensor[Tilt](stereo=-20.0, tof=-30.0), description="per sensor, the tilt "
+                                      "while orienting (pan 0: along the heading)")
+    tof_frames: int = Field(1, ge=1, le=20, description="SR4000 frames averaged per look")
+    rekey_overlap: PerSensor[Share] = Field(
+        PerSensor[Share](stereo=0.35, tof=0.9), description="per sensor: the new look becomes the keyframe when less "
+        "than this share of the keyframe was found again (the next step might lose it)")
+    rekey_inliers: int = Field(150, ge=0, description="... or (stereo) fewer tracked points agree than this")
+    max_keyframe_m: PerSensor[Positive] = Field(PerSensor[Positive](stereo=2.0, tof=0.3), description="per "
+                                                "sensor: ... or the rover is farther than this from the keyframe")
+    max_keyframe_deg: float = Field(25.0, gt=0, le=180, description="... or has turned this much from it")
+    covariance_scale: float = Field(1.0, gt=0, description="the odometry's own covariance times this: what the "
+                                    "campaign measured it to be over-confident by")
+    lost_sigma_m: float = Field(0.5, gt=0, description="position sigma added to a keyframe taken after a failed "
+                                "look (dead reckoning carried the rover there)")
+    lost_sigma_deg: float = Field(5.0, gt=0, description="heading sigma added to such a keyframe")
+    sun: bool = Field(True, description="fuse the sun sensor's heading when the rover has one")
+    sun_samples: int = Field(10, ge=1, le=1000, description="sun sensor readings averaged per look (the rover "
+                             "stands still; their white noise falls as the root of their count, the bias stays)")
+    sun_gate_sigmas: float = Field(5.0, gt=0, description="a sun heading this many sigmas off the odometry's is "
+                                   "refused")
