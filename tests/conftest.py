@@ -238,4 +238,14 @@ def server(server_factory) -> ServerProcess:
     return server_factory()
 
 
+@pytest.fixture(scope="module")
+def shared_server(tmp_path_factory) -> ServerProcess:
+    """One server on fresh data and the repository's configs, shared by a module's tests that leave it
+    as they found it (standby, no recovery set, configs untouched): a server start costs seconds."""
+    root = tmp_path_factory.mktemp("shared")
+    server = ServerProcess(data_dir=root / "data", config_dir=write_configs(root / "configs")).start()
+    yield server
+    server.stop()
+
+
 os.environ.setdefault("PYTHONUNBUFFERED", "1")
