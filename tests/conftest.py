@@ -68,7 +68,9 @@ class ServerProcess:
         if self.proc.poll() is None:
             try:
                 with self.connect(timeout=5) as client:
-                    client.command("quit", timeout=60)
+                    reply = client.command("quit", timeout=60)
+                if reply.split()[1:2] != ["OK"]:  # refused (a server with --token-file): SIGTERM quits as cleanly
+                    self.proc.terminate()
             except (OSError, AssertionError, TimeoutError):
                 pass
             try:
