@@ -9,7 +9,7 @@ import pytest
 
 from rvs_server.products.rasters import read_geotiff, read_png
 
-from conftest import pairs
+from conftest import ServerProcess, pairs, write_configs
 
 # A quarter panorama keeps these tests quick; the full one runs the same code.
 ARC = "--pan -60:60 --output"
@@ -44,8 +44,8 @@ def test_dem_full_tof_writes_maps_that_agree_with_the_truth(server):
     assert len(views) == int(reply["views"]) and len(views) >= 3
 
 
-def test_break_and_continue_give_the_same_product_as_an_uninterrupted_run(server_factory, tmp_path):
-    reference = uninterrupted(server_factory, tmp_path)
+def test_break_and_continue_give_the_same_product_as_an_uninterrupted_run(server_factory, tmp_path, uninterrupted):
+    reference = uninterrupted
     interrupted = server_factory(data_dir=tmp_path / "broken")
     with interrupted.connect() as c:
         c.send(f"@d dem-full-tof {ARC} same")
@@ -57,8 +57,8 @@ def test_break_and_continue_give_the_same_product_as_an_uninterrupted_run(server
     _assert_same_maps(reference, products(interrupted) / "same")
 
 
-def test_kill_restart_continue_gives_the_same_product(server_factory, tmp_path):
-    reference = uninterrupted(server_factory, tmp_path)
+def test_kill_restart_continue_gives_the_same_product(server_factory, tmp_path, uninterrupted):
+    reference = uninterrupted
     first = server_factory(data_dir=tmp_path / "crash")
     with first.connect() as c:
         c.send(f"@d dem-full-tof {ARC} same")
@@ -71,11 +71,18 @@ def test_kill_restart_continue_gives_the_same_product(server_factory, tmp_path):
     _assert_same_maps(reference, products(second) / "same")
 
 
-def uninterrupted(server_factory, tmp_path):
-    """The product of a run nobody interrupts: what a resumed run must equal."""
-    plain = server_factory(data_dir=tmp_path / "plain")
-    with plain.connect() as c:
-        c.command(f"dem-full-tof {ARC} same", timeout=300)
+@pytest.fixture(scope="module")
+def uninterrupted(tmp_path_factory):
+    """The product of a run nobody interrupts, on a fresh server with the repository's configs: what a
+    resumed run must equal. The same for every resumed run, so made once for the module."""
+    root = tmp_path_factory.mktemp("uninterrupted")
+    plain = ServerProcess(data_dir=root / "plain", config_dir=write_configs(root / "configs")).start()
+    try:
+        with plain.connect() as c:
+            reply = c.command(f"dem-full-tof {ARC} same", timeout=300)
+    finally:
+        plain.stop()
+    assert " OK " in reply, reply
     return products(plain) / "same"
 
 
