@@ -127,19 +127,25 @@ def test_a_workflow_edited_by_hand_changes_the_result(server_factory, tmp_path):
     (lambda t: t.replace("inputs: {points: body}", "inputs: {points: nowhere}"), ["step 5 (grid)", "'nowhere'"]),
     (lambda t: t.replace("params: {cell: $args.cell}", "params: {cell: -1}"), ["step 5 (grid)", "params.cell"]),
 ])
-def test_a_broken_workflow_is_refused_before_any_device_moves(server_factory, edit, words):
-    server = server_factory()
+def test_a_broken_workflow_is_refused_before_any_device_moves(shared_server, edit, words):
+    """One server for the three edits: the workflow is read at each command, and each case puts the
+    repository's file back when it is done."""
+    server = shared_server
     workflow = server.config_dir.parent / "workflows" / "dem-full-tof.yaml"
-    workflow.write_text(edit(workflow.read_text()))
-    with server.connect() as c:
-        before = pairs(c.command("status"))
-        reply = c.command(f"dem-full-tof {ARC} x", timeout=60)
-        assert "ERR 400 bad-request dem-full-tof: workflow refused" in reply
-        for word in words:
-            assert word in reply
-        assert "ERR 400" in c.command(f"check dem-full-tof {ARC} x")
-        after = pairs(c.command("status"))
-        assert (after["pan"], after["tilt"], after["mode"]) == (before["pan"], before["tilt"], "standby")
+    original = workflow.read_text()
+    workflow.write_text(edit(original))
+    try:
+        with server.connect() as c:
+            before = pairs(c.command("status"))
+            reply = c.command(f"dem-full-tof {ARC} x", timeout=60)
+            assert "ERR 400 bad-request dem-full-tof: workflow refused" in reply
+            for word in words:
+                assert word in reply
+            assert "ERR 400" in c.command(f"check dem-full-tof {ARC} x")
+            after = pairs(c.command("status"))
+            assert (after["pan"], after["tilt"], after["mode"]) == (before["pan"], before["tilt"], "standby")
+    finally:
+        workflow.write_text(original)
     assert not (products(server) / "x").exists()
 
 
