@@ -68,7 +68,9 @@ class ServerProcess:
         if self.proc.poll() is None:
             try:
                 with self.connect(timeout=5) as client:
-                    client.command("quit", timeout=60)
+                    reply = client.command("quit", timeout=60)
+                if reply.split()[1:2] != ["OK"]:  # refused (a server with --token-file): SIGTERM quits as cleanly
+                    self.proc.terminate()
             except (OSError, AssertionError, TimeoutError):
                 pass
             try:
@@ -236,6 +238,16 @@ def server_factory(tmp_path):
 def server(server_factory) -> ServerProcess:
     """One running server on fresh data and the repository's configs."""
     return server_factory()
+
+
+@pytest.fixture(scope="module")
+def shared_server(tmp_path_factory) -> ServerProcess:
+    """One server on fresh data and the repository's configs, shared by a module's tests that leave it
+    as they found it (standby, no recovery set, configs untouched): a server start costs seconds."""
+    root = tmp_path_factory.mktemp("shared")
+    server = ServerProcess(data_dir=root / "data", config_dir=write_configs(root / "configs")).start()
+    yield server
+    server.stop()
 
 
 os.environ.setdefault("PYTHONUNBUFFERED", "1")

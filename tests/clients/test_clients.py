@@ -166,6 +166,13 @@ def test_runner_logic_stops_at_first_error_unless_excused():
 # Against a real server
 
 
+@pytest.fixture(scope="module")
+def server(shared_server):
+    """One server for the module: every test here ends with the server in standby, nothing to resume,
+    and asserts on the PTU only relative to where it stood or after moving it itself."""
+    return shared_server
+
+
 @pytest.fixture
 def client(server):
     with RvsClient(server.host, server.port, timeout=20) as connection:

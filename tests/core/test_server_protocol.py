@@ -17,15 +17,17 @@ def near(data: dict, pan: float, tilt: float) -> bool:
     return abs(float(data["pan"]) - pan) <= STEP and abs(float(data["tilt"]) - tilt) <= STEP
 
 # -- text transport: framing --------------------------------------------------------------------
+# The tests on `shared_server` read and refuse but never move the PTU, start a job or edit a file, so
+# one server answers them all; the tests that count jobs or change state start their own.
 
 
-def test_greeting_names_version_and_mode(server):
-    with server.connect() as c:
+def test_greeting_names_version_and_mode(shared_server):
+    with shared_server.connect() as c:
         assert c.greeting.split() == ["RVS", "0.1.0", "standby"]
 
 
-def test_untagged_lines_are_numbered_and_ignored_lines_are_not_counted(server):
-    with server.connect() as c:
+def test_untagged_lines_are_numbered_and_ignored_lines_are_not_counted(shared_server):
+    with shared_server.connect() as c:
         c.send_raw(b"status\n\n   \n# a comment\n@mine version\r\nversion\r\n")
         first, second, third = c.read_line(), c.read_line(), c.read_line()
         assert first.startswith("1 OK mode=standby")
@@ -33,22 +35,22 @@ def test_untagged_lines_are_numbered_and_ignored_lines_are_not_counted(server):
         assert third.startswith("3 OK version=")  # the tagged line counted as the second
 
 
-def test_telnet_negotiation_bytes_are_ignored(server):
-    with server.connect() as c:
+def test_telnet_negotiation_bytes_are_ignored(shared_server):
+    with shared_server.connect() as c:
         c.send_raw(b"\xff\xfd\x03\xff\xfb\x18sta\xff\xfa\x18\x00vt100\xff\xf0tus\r\n")
         assert c.read_line().startswith("1 OK mode=")
 
 
-def test_a_line_that_fails_to_parse_keeps_its_tag(server):
-    with server.connect() as c:
+def test_a_line_that_fails_to_parse_keeps_its_tag(shared_server):
+    with shared_server.connect() as c:
         c.send('@q7 move-ptu --pan "30')
         assert c.read_line().startswith("q7 ERR 400 bad-request cannot split")
         c.send("@bad#tag status")
         assert c.read_line().startswith("2 ERR 400 bad-request tag 'bad#tag'")
 
 
-def test_line_too_long_is_refused_and_the_connection_stays_usable(server):
-    with server.connect() as c:
+def test_line_too_long_is_refused_and_the_connection_stays_usable(shared_server):
+    with shared_server.connect() as c:
         c.send_raw(b"@long status --x " + b"y" * 9000 + b"\nstatus\n")
         assert c.read_line().startswith("long ERR 400 line-too-long")
         assert c.read_line().startswith("2 OK mode=")
@@ -57,15 +59,15 @@ def test_line_too_long_is_refused_and_the_connection_stays_usable(server):
         assert c.read_line().startswith("edge OK")
 
 
-def test_bytes_that_are_not_utf8_are_refused(server):
-    with server.connect() as c:
+def test_bytes_that_are_not_utf8_are_refused(shared_server):
+    with shared_server.connect() as c:
         c.send_raw(b"@enc status \xc3\x28\n# comment \xff is still a comment\nversion\n")
         assert c.read_line().startswith("enc ERR 400 bad-encoding")
         assert c.read_line().startswith("2 OK version=")
 
 
-def test_values_with_spaces_are_quoted(server):
-    with server.connect() as c:
+def test_values_with_spaces_are_quoted(shared_server):
+    with shared_server.connect() as c:
         reply = c.command("help move-ptu")
         assert ' summary="' in reply
         assert pairs(reply)["command"] == "move-ptu"
@@ -74,13 +76,13 @@ def test_values_with_spaces_are_quoted(server):
 # -- errors and their codes ---------------------------------------------------------------------
 
 
-def test_unknown_command_suggests_the_closest(server):
-    with server.connect() as c:
+def test_unknown_command_suggests_the_closest(shared_server):
+    with shared_server.connect() as c:
         assert "404 unknown-command no command 'statsu'; did you mean status?" in c.command("statsu")
 
 
-def test_invalid_option_names_option_and_range(server):
-    with server.connect() as c:
+def test_invalid_option_names_option_and_range(shared_server):
+    with shared_server.connect() as c:
         reply = c.command("move-ptu --pan 400")
         assert "ERR 400 bad-request" in reply and "--pan" in reply and "-360..360" in reply
         reply = c.command("move-ptu --pan 170")
@@ -88,8 +90,8 @@ def test_invalid_option_names_option_and_range(server):
         assert "unknown option --pna; did you mean --pan?" in c.command("move-ptu --pna 3")
 
 
-def test_help_is_generated_from_the_config_class(server):
-    with server.connect() as c:
+def test_help_is_generated_from_the_config_class(shared_server):
+    with shared_server.connect() as c:
         listed = pairs(c.command("help"))["commands"].split()
         for name in ("status", "help", "version", "check", "standby", "break", "continue", "abort", "reset",
                      "reinit", "sleep", "logbook", "quit", "auth", "subscribe", "move-ptu"):
@@ -100,8 +102,8 @@ def test_help_is_generated_from_the_config_class(server):
         assert data["usage"] == "move-ptu [--pan PAN] [--tilt TILT] [--speed SPEED] [--relative]"
 
 
-def test_check_validates_without_running(server):
-    with server.connect() as c:
+def test_check_validates_without_running(shared_server):
+    with shared_server.connect() as c:
         assert c.command("check move-ptu --pan 30 --tilt -10").split()[1] == "OK"
         assert "ERR 400" in c.command("check move-ptu --pan 999")
         assert "ERR 404" in c.command("check nosuch")
@@ -273,10 +275,10 @@ def test_subscribe_delivers_event_lines(server):
         assert "ERR 400" in listener.command("subscribe weather")
 
 
-def test_logbook_copies_the_log(server):
-    with server.connect() as c:
+def test_logbook_copies_the_log(shared_server):
+    with shared_server.connect() as c:
         path = pairs(c.command("logbook"))["path"]
-        assert path.startswith(str(server.data_dir / "shared"))
+        assert path.startswith(str(shared_server.data_dir / "shared"))
         assert "listening" in open(path).read()
 
 
@@ -368,11 +370,11 @@ def test_zmq_router_reaches_the_same_dispatcher(server):
         assert pairs(c.command("status"))["pan"] == final["data"]["pan"]  # one dispatcher, one state
 
 
-def test_zmq_bad_json_gets_an_error_not_silence(server):
+def test_zmq_bad_json_gets_an_error_not_silence(shared_server):
     ctx = zmq.Context.instance()
     sock = ctx.socket(zmq.DEALER)
     sock.setsockopt(zmq.LINGER, 0)
-    sock.connect(server.zmq)
+    sock.connect(shared_server.zmq)
     sock.send(b"{not json")
     assert sock.poll(10000)
     reply = json.loads(sock.recv())

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import subprocess
+from concurrent.futures import ThreadPoolExecutor
 
 import pytest
 
@@ -15,7 +16,7 @@ def start(tmp_path, *args: str, configs: dict[str, str] | None = None) -> subpro
                           cwd=REPO, capture_output=True, text=True, timeout=60, stdin=subprocess.DEVNULL)
 
 
-@pytest.mark.parametrize("name, text, words", [
+INVALID_FILES = [
     ("server.toml", "port = 99999\n", ["server.toml", "field port", "99999", "0..65535"]),
     ("server.toml", "prot = 7400\n", ["server.toml", "field prot", "unknown field", "did you mean field port"]),
     ("devices.toml", '[ptu]\nbackend = "usb"\n', ["devices.toml", "field ptu.backend", "'usb'", "sim|serial"]),
@@ -26,9 +27,23 @@ def start(tmp_path, *args: str, configs: dict[str, str] | None = None) -> subpro
      ["navigation.toml", "field holes.stero", "unknown field", "did you mean field holes.stereo",
       "allowed: field holes.tof, field holes.stereo"]),
     ("server.toml", "port = [\n", ["server.toml", "not valid TOML"]),
-])
-def test_an_invalid_file_stops_start_up_naming_file_field_value_and_rule(tmp_path, name, text, words):
-    result = start(tmp_path, configs={name: text})
+]
+
+
+@pytest.fixture(scope="module")
+def invalid_file_starts(tmp_path_factory) -> list[subprocess.CompletedProcess]:
+    """Every invalid-file start-up of the table, two at a time (each is an interpreter importing the
+    server's modules on one core before it reads the files): the results, in the table's order."""
+    def run(numbered):
+        number, (name, text, _) = numbered
+        return start(tmp_path_factory.mktemp(f"invalid-{number}"), configs={name: text})
+    with ThreadPoolExecutor(2) as pool:
+        return list(pool.map(run, enumerate(INVALID_FILES)))
+
+
+@pytest.mark.parametrize("case", range(len(INVALID_FILES)), ids=[f"{n}-{t.strip()}" for n, t, _ in INVALID_FILES])
+def test_an_invalid_file_stops_start_up_naming_file_field_value_and_rule(invalid_file_starts, case):
+    result, words = invalid_file_starts[case], INVALID_FILES[case][2]
     assert result.returncode == 2, result.stderr
     for word in words:
         assert word in result.stderr, (word, result.stderr)

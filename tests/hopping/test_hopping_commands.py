@@ -11,7 +11,9 @@ from __future__ import annotations
 import itertools
 import json
 import math
+import shutil
 import tomllib
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -22,7 +24,7 @@ from drivers.sim.world import World
 from rvs_server.products.ply import read_ply
 from rvs_server.products.rasters import read_geotiff
 
-from conftest import SMALL_WORLD, pairs
+from conftest import SMALL_WORLD, ServerProcess, pairs, write_configs
 
 HOPPING = """sfm_threads = 1   # repeatable reconstructions: COLMAP's threads finish in varying order
 [hopper.camera]
@@ -64,15 +66,46 @@ def world() -> World:
     return World.build(WorldConfig.model_validate(tomllib.loads(SMALL_WORLD)))
 
 
-def test_hop_plan_chain_and_global_map(server_factory, world):
-    server = server_factory(configs={"hopping.toml": HOPPING})
+@dataclass
+class FirstPlan:
+    """A fresh server's first hop and hop-plan: what it said before, the replies and their PROGRESS lines,
+    and a copy of hop-plan-001 taken as soon as it was written."""
+    server: ServerProcess
+    before: tuple[str, str]
+    hop: tuple[str, list[str]]
+    plan: tuple[str, list[str]]
+    reference: Path
+
+
+@pytest.fixture(scope="module")
+def first_plan(tmp_path_factory):
+    """hop then hop-plan on a fresh server (hopping.toml: HOPPING), run once for the module: the chain
+    goes on from it on the same server, and it is the uninterrupted run that break and continue must equal."""
+    root = tmp_path_factory.mktemp("hop-chain")
+    server = ServerProcess(data_dir=root / "data",
+                           config_dir=write_configs(root / "configs", {"hopping.toml": HOPPING})).start()
+    try:
+        with server.connect(timeout=300) as c:
+            before = (c.command("hop-plan"), c.command("hop-map"))
+            hop = command(c, "hop --speed 1.5 --elevation 60 --heading 0", timeout=120)
+            plan = command(c, "hop-plan", timeout=240)
+        reference = root / "reference" / "hop-plan-001"
+        if (server.data_dir / "products" / "hop-plan-001").is_dir():
+            shutil.copytree(server.data_dir / "products" / "hop-plan-001", reference)
+        yield FirstPlan(server, before, hop, plan, reference)
+    finally:
+        server.stop()
+
+
+def test_hop_plan_chain_and_global_map(first_plan, world):
+    server = first_plan.server
     products = server.data_dir / "products"
     with server.connect(timeout=300) as c:
         # Nothing to plan or map before the first hop.
-        assert "ERR 409 wrong-mode hop-plan: no hop yet" in c.command("hop-plan")
-        assert "ERR 409 wrong-mode hop-map: no hop reconstructed yet" in c.command("hop-map")
+        assert "ERR 409 wrong-mode hop-plan: no hop yet" in first_plan.before[0]
+        assert "ERR 409 wrong-mode hop-map: no hop reconstructed yet" in first_plan.before[1]
 
-        line, progress = command(c, "hop --speed 1.5 --elevation 60 --heading 0", timeout=120)
+        line, progress = first_plan.hop
         hop = pairs(line)
         assert set(hop) == {"job", "product", "path", "frames", "flight_time"}, line   # no truth in the reply
         assert hop["product"] == "hop-001" and int(hop["frames"]) > 40 and 1.0 < float(hop["flight_time"]) < 2.5
@@ -82,7 +115,7 @@ def test_hop_plan_chain_and_global_map(server_factory, world):
             assert (folder / name).exists(), name
         assert "truth" not in json.loads((folder / "hop.json").read_text())   # truth only under truth/
 
-        line, progress = command(c, "hop-plan", timeout=240)
+        line, progress = first_plan.plan
         plan = pairs(line)
         assert {"target", "speed", "elevation", "heading", "position", "product"} <= set(plan), line
         assert plan["product"] == "hop-plan-001" and any("structure from motion" in p for p in progress)
@@ -157,18 +190,18 @@ def test_hop_plan_tries_each_sfm_setting_and_refuses_a_flight_none_makes_clean(s
     assert all(a["problem"] and 0 <= a["fit_share"] < 0.6 for a in attempts), attempts
 
 
-def test_break_and_continue_resume_hop_plan_at_the_step_and_give_the_same_product(server_factory, tmp_path):
+def test_break_and_continue_resume_hop_plan_at_the_step_and_give_the_same_product(server_factory, tmp_path,
+                                                                                  first_plan):
     """hop-plan broken after its dense step: continue takes the reconstruction and the dense cloud from
-    their checkpoints, runs the estimate and the plan, and writes what an uninterrupted run writes."""
+    their checkpoints, runs the estimate and the plan, and writes what an uninterrupted run writes (the
+    module's first hop-plan, on a fresh server with the same files)."""
     hop = "hop --speed 1.5 --elevation 60 --heading 0"
-    plain = server_factory(data_dir=tmp_path / "plain", configs={"hopping.toml": HOPPING})
-    with plain.connect(timeout=300) as c:
-        assert pairs(c.command(hop, timeout=120))["product"] == "hop-001"
-        line, progress = command(c, "hop-plan", timeout=240)
+    assert pairs(first_plan.hop[0])["product"] == "hop-001", first_plan.hop[0]
+    line, progress = first_plan.plan
     reference = pairs(line)
     assert reference["product"] == "hop-plan-001", line
     assert [p for p in progress if "step 1/4 sfm" in p] and [p for p in progress if "step 4/4 plan" in p]
-    broken = server_factory(data_dir=tmp_path / "broken")
+    broken = server_factory(data_dir=tmp_path / "broken", configs={"hopping.toml": HOPPING})
     with broken.connect(timeout=300) as c:
         assert pairs(c.command(hop, timeout=120))["product"] == "hop-001"
         c.send("@r hop-plan")
@@ -187,7 +220,7 @@ def test_break_and_continue_resume_hop_plan_at_the_step_and_give_the_same_produc
     steps = {s["step"]: s["resumed"] for s in manifest["workflow"]["steps"]}
     assert steps == {"sfm": True, "dense": True, "estimate": False, "plan": False}, steps
     assert {"sfm", "dense", "estimate", "plan", "write"} <= set(manifest["timings_s"])
-    assert_same_product(plain.data_dir / "products" / "hop-plan-001", folder)
+    assert_same_product(first_plan.reference, folder)
 
 
 def assert_same_product(a: Path, b: Path) -> None:

@@ -11,11 +11,13 @@ from rvs_server.products.rasters import read_png
 from conftest import pairs
 
 
-def test_grab_tof_writes_raw_values_a_picture_and_the_truth(server):
-    with server.connect() as c:
+# The three grab tests share one server: each names its own products and points the PTU itself where
+# its assertions depend on where it looks (grab-tof's tilt); none changes a config or leaves a job.
+def test_grab_tof_writes_raw_values_a_picture_and_the_truth(shared_server):
+    with shared_server.connect() as c:
         assert c.command("move-ptu --tilt -35 --speed 50").split()[1] == "OK"
         reply = pairs(c.command("grab-tof --output scan --frames 3 --min-confidence 2000", timeout=120))
-    product = server.data_dir / "products" / reply["product"]
+    product = shared_server.data_dir / "products" / reply["product"]
     manifest = json.loads((product / "product.json").read_text())
     assert manifest["status"] == "complete" and manifest["command"] == "grab-tof"
     assert manifest["arguments"]["frames"] == 3
@@ -35,22 +37,22 @@ def test_grab_tof_writes_raw_values_a_picture_and_the_truth(server):
     assert np.median(error) < 0.03
 
 
-def test_grab_tof_xyz_and_a_name_that_is_a_path(server):
-    with server.connect() as c:
+def test_grab_tof_xyz_and_a_name_that_is_a_path(shared_server):
+    with shared_server.connect() as c:
         reply = pairs(c.command("grab-tof --output xyz1 --image xyz", timeout=120))
-        xyz = tifffile.imread(server.data_dir / "products" / reply["product"] / "xyz.tif")
+        xyz = tifffile.imread(shared_server.data_dir / "products" / reply["product"] / "xyz.tif")
         assert xyz.shape == (144, 176, 3) and xyz.dtype == np.float32
         assert "ERR 400" in c.command("grab-tof --output ../escape")
         assert "ERR 400" in c.command("grab-tof --output .hidden")
-        assert not (server.data_dir.parent / "escape").exists()
+        assert not (shared_server.data_dir.parent / "escape").exists()
         # the same name twice makes a second product, never overwrites the first
         assert pairs(c.command("grab-tof --output xyz1", timeout=120))["product"] == "xyz1-2"
 
 
-def test_grab_stereo_takes_both_images_at_one_instant(server):
-    with server.connect() as c:
+def test_grab_stereo_takes_both_images_at_one_instant(shared_server):
+    with shared_server.connect() as c:
         reply = pairs(c.command("grab-stereo --output pair", timeout=120))
-    product = server.data_dir / "products" / reply["product"]
+    product = shared_server.data_dir / "products" / reply["product"]
     frames = json.loads((product / "frames.json").read_text())
     assert frames["left"]["timestamp_s"] == frames["right"]["timestamp_s"]
     left, right = read_png(product / "left.png"), read_png(product / "right.png")

@@ -9,7 +9,7 @@ import pytest
 
 from rvs_server.products.rasters import read_geotiff, read_png
 
-from conftest import pairs
+from conftest import ServerProcess, pairs, write_configs
 
 # A quarter panorama keeps these tests quick; the full one runs the same code.
 ARC = "--pan -60:60 --output"
@@ -44,8 +44,8 @@ def test_dem_full_tof_writes_maps_that_agree_with_the_truth(server):
     assert len(views) == int(reply["views"]) and len(views) >= 3
 
 
-def test_break_and_continue_give_the_same_product_as_an_uninterrupted_run(server_factory, tmp_path):
-    reference = uninterrupted(server_factory, tmp_path)
+def test_break_and_continue_give_the_same_product_as_an_uninterrupted_run(server_factory, tmp_path, uninterrupted):
+    reference = uninterrupted
     interrupted = server_factory(data_dir=tmp_path / "broken")
     with interrupted.connect() as c:
         c.send(f"@d dem-full-tof {ARC} same")
@@ -57,8 +57,8 @@ def test_break_and_continue_give_the_same_product_as_an_uninterrupted_run(server
     _assert_same_maps(reference, products(interrupted) / "same")
 
 
-def test_kill_restart_continue_gives_the_same_product(server_factory, tmp_path):
-    reference = uninterrupted(server_factory, tmp_path)
+def test_kill_restart_continue_gives_the_same_product(server_factory, tmp_path, uninterrupted):
+    reference = uninterrupted
     first = server_factory(data_dir=tmp_path / "crash")
     with first.connect() as c:
         c.send(f"@d dem-full-tof {ARC} same")
@@ -71,11 +71,18 @@ def test_kill_restart_continue_gives_the_same_product(server_factory, tmp_path):
     _assert_same_maps(reference, products(second) / "same")
 
 
-def uninterrupted(server_factory, tmp_path):
-    """The product of a run nobody interrupts: what a resumed run must equal."""
-    plain = server_factory(data_dir=tmp_path / "plain")
-    with plain.connect() as c:
-        c.command(f"dem-full-tof {ARC} same", timeout=300)
+@pytest.fixture(scope="module")
+def uninterrupted(tmp_path_factory):
+    """The product of a run nobody interrupts, on a fresh server with the repository's configs: what a
+    resumed run must equal. The same for every resumed run, so made once for the module."""
+    root = tmp_path_factory.mktemp("uninterrupted")
+    plain = ServerProcess(data_dir=root / "plain", config_dir=write_configs(root / "configs")).start()
+    try:
+        with plain.connect() as c:
+            reply = c.command(f"dem-full-tof {ARC} same", timeout=300)
+    finally:
+        plain.stop()
+    assert " OK " in reply, reply
     return products(plain) / "same"
 
 
@@ -120,19 +127,25 @@ def test_a_workflow_edited_by_hand_changes_the_result(server_factory, tmp_path):
     (lambda t: t.replace("inputs: {points: body}", "inputs: {points: nowhere}"), ["step 5 (grid)", "'nowhere'"]),
     (lambda t: t.replace("params: {cell: $args.cell}", "params: {cell: -1}"), ["step 5 (grid)", "params.cell"]),
 ])
-def test_a_broken_workflow_is_refused_before_any_device_moves(server_factory, edit, words):
-    server = server_factory()
+def test_a_broken_workflow_is_refused_before_any_device_moves(shared_server, edit, words):
+    """One server for the three edits: the workflow is read at each command, and each case puts the
+    repository's file back when it is done."""
+    server = shared_server
     workflow = server.config_dir.parent / "workflows" / "dem-full-tof.yaml"
-    workflow.write_text(edit(workflow.read_text()))
-    with server.connect() as c:
-        before = pairs(c.command("status"))
-        reply = c.command(f"dem-full-tof {ARC} x", timeout=60)
-        assert "ERR 400 bad-request dem-full-tof: workflow refused" in reply
-        for word in words:
-            assert word in reply
-        assert "ERR 400" in c.command(f"check dem-full-tof {ARC} x")
-        after = pairs(c.command("status"))
-        assert (after["pan"], after["tilt"], after["mode"]) == (before["pan"], before["tilt"], "standby")
+    original = workflow.read_text()
+    workflow.write_text(edit(original))
+    try:
+        with server.connect() as c:
+            before = pairs(c.command("status"))
+            reply = c.command(f"dem-full-tof {ARC} x", timeout=60)
+            assert "ERR 400 bad-request dem-full-tof: workflow refused" in reply
+            for word in words:
+                assert word in reply
+            assert "ERR 400" in c.command(f"check dem-full-tof {ARC} x")
+            after = pairs(c.command("status"))
+            assert (after["pan"], after["tilt"], after["mode"]) == (before["pan"], before["tilt"], "standby")
+    finally:
+        workflow.write_text(original)
     assert not (products(server) / "x").exists()
 
 

@@ -157,8 +157,9 @@ def test_with_a_real_rover_the_waypoints_go_to_the_gnc(server_factory, world):
 @pytest.mark.parametrize("options, field", [("--to 1", "to"), ("--to 1,2 --tolerance 0", "tolerance"),
                                             ("--to 1,2 --sensor lidar", "sensor"),
                                             ("--to 1,2 --max-steps 0", "max_steps")])
-def test_bad_options_name_the_field(server, options, field):
-    with server.connect() as c:
+def test_bad_options_name_the_field(shared_server, options, field):
+    """Refused before anything runs, so the four cases ask one server."""
+    with shared_server.connect() as c:
         reply = c.command(f"navigate {options}")
     assert reply.split()[1:3] == ["ERR", "400"] and (field in reply or field.replace("_", "-") in reply), reply
 
