@@ -42,7 +42,7 @@ POSE_POLL_S = 0.5
 NO_FORWARD_CAMERA = "the forward camera is the simulated rover's body-fixed camera and the devices are real"
 
 __all__ = ["Drive", "DriveGuard", "DriveMode", "DriveStopped", "ForwardCamera", "ForwardCameraConfig", "GncDrive", "Moved", "Pace", "RoverDevice",
-           "SimulatedDrive", "SunReading", "WorldEdge", "dead_reckon"]
+           "SimulatedDrive", "SunReading", "WorldEdge", "dead_reckon", "turn_and_distance"]
 
 
 @dataclass(frozen=True)
@@ -151,7 +151,7 @@ class SimulatedDrive(Drive):
             announce(target)
             moved = self.move(job, turn, distance, pace, start=start, incline=True)
             yield moved
-            start = moved.estimate
+            start = self.rover.pose_estimate   # the caller may have corrected it (an orient look between legs)
 
     def move(self, job: "JobContext", turn: float, distance: float, pace: Pace, start: RoverPose | None = None,
              incline: bool = False) -> Moved:

@@ -112,9 +112,14 @@ class NavigationSettings(Settings):
                                       "its error exceed the room between the footprint and the hazards; 0: off")
     footprint_m: tuple[PositiveFloat, PositiveFloat] = Field((0.55, 0.50), description="the rover's footprint, "
                                                              "length x width, metres, for the drive-error cut")
-    orient: bool = Field(True, description="each cycle begins with an orient look along the heading (visual "
+    orient: bool = Field(False, description="each cycle begins with an orient look along the heading (visual "
                          "odometry since the last cycle's, the sun's heading; orient.toml): the map alignment starts "
-                         "from it instead of dead reckoning")
+                         "from it instead of dead reckoning; and the drives look every orient_step_m")
+    orient_step_m: float = Field(1.0, gt=0.1, le=10, description="with orient, a drive's legs are cut into parts "
+                                 "of at most this length with an orient look after each: the rover re-aims at the "
+                                 "next waypoint from where it is, not from where dead reckoning says")
+    orient_turn_deg: float = Field(20.0, gt=1, le=180, description="with orient, a larger turn is made in parts "
+                                   "of at most this, a look after each: the views either side must overlap")
     route_hysteresis: float = Field(0.25, ge=0, description="navigate keeps its last route while it is clear and "
                                     "costs at most this fraction more than a new plan; 0: replan from scratch")
     min_progress_m: float = Field(0.15, gt=0, description="a safe part shorter than this is a stall")

@@ -3,8 +3,10 @@
 The thesis' navigation (sections 4.4, 5.4-5.5) mapped once, planned once and drove, with the rover
 placed where odometry said. Here each cycle
 
-  1. maps the surroundings with the sensor (workflows/navigate-<sensor>.yaml), aligning the new
-     points to the map of the earlier cycles first: the alignment corrects the odometry pose;
+  1. looks along the heading with the sensor (orient, navigation.toml `orient`): visual odometry
+     since the last cycle's look and the sun's heading replace dead reckoning's estimate;
+     then maps the surroundings with the sensor (workflows/navigate-<sensor>.yaml), aligning the new
+     points to the map of the earlier cycles first: the alignment corrects the pose;
   2. stops if the corrected position is within the tolerance of the goal;
   3. plans on a blank global map spanning rover and goal fused with every cycle's local map, and
      keeps the last cycle's route while it stays clear and near the new plan's cost (a rover that
@@ -35,7 +37,7 @@ from pydantic import Field
 from scipy.ndimage import distance_transform_edt
 
 from rvs_server.config import CommandConfig, Point, SafeName
-from rvs_server.devices.rover import DriveStopped, Moved, Pace, WorldEdge, dead_reckon
+from rvs_server.devices.rover import DriveStopped, Moved, Pace, WorldEdge, dead_reckon, turn_and_distance
 from rvs_server.files import atomic_file, save_npy_atomic
 from rvs_server.jobs import JobContext
 from rvs_server.mapping import (MappingSettings, WorkflowArgs, check_workflow, leave_camera_as_acquired, operations,
@@ -44,6 +46,7 @@ from rvs_server.navigation.commands import (NavigationSettings, check_reach, han
                                             module, operating_box, planning_layers, planning_params, under_rover,
                                             unlooked_ground, within_area, write_plan)
 from rvs_server.navigation.pictures import write_traverse
+from rvs_server.orientation import OrientFailed, OrientSettings, odometer_of, take_look
 from rvs_server.products.manifests import ProductPart
 from rvs_server.products.rasters import read_geotiff
 from rvs_server.protocol import BadRequest
@@ -94,6 +97,7 @@ class Traverse:
     contacts: int = 0
     stalls: int = 0
     hazard_stops: int = 0                # drives the hazard guard stopped short of a hazard (hazard-start)
+    orients: list[dict[str, Any]] = field(default_factory=list)   # each cycle's orient look (navigation.toml orient)
     moved: list[float] = field(default_factory=lambda: [0.0, 0.0])  # metres, degrees since the last fix
     best_percent: float = 0.0
 
@@ -160,6 +164,9 @@ class Navigation:
         self.goal = (float(cfg.to[0]), float(cfg.to[1]))
         self.rover = ctx.devices.rover
         self.drive_by = self.rover.drive(self.settings.drive, "navigation.drive")
+        self.orient_settings: OrientSettings = ctx.settings_of("orientation")
+        # A GNC's pose is the estimate: nothing to orient between.
+        self.orienting = self.settings.orient and self.drive_by.simulated
         resume = ctx.resume or {}
         if "traverse" in resume:
             self.state = Traverse(**resume["traverse"])
@@ -193,8 +200,35 @@ class Navigation:
             self.plan_cycle()
             self.checkpoint()
 
+    def orient_look(self) -> None:
+        """Visual odometry since the last cycle's look (rvs_server/orientation): the estimate the
+        map alignment starts from. A look that cannot be matched leaves dead reckoning's."""
+        state, sensor = self.state, self.cfg.sensor
+        self.progress(f"cycle {state.cycle}: orienting along the heading")
+        record: dict[str, Any]
+        self.rover.pose_estimate = state.rover
+        try:
+            look = take_look(self.ctx, sensor, self.orient_settings)
+            outcome = odometer_of(self.server).orient(look, self.orient_settings, self.rover.epoch)
+        except OrientFailed as failed:
+            record = {"failed": failed.failure.reason, "sentence": failed.failure.sentence}
+        else:
+            pose = outcome.belief.pose
+            state.pose = [pose.x, pose.y, state.pose[2], pose.heading, pose.roll, pose.pitch]
+            sigma_xy, sigma_heading = outcome.belief.sigmas()
+            record = {"keyframe": outcome.keyframe, "sources": outcome.sources, "x": pose.x, "y": pose.y,
+                      "heading_deg": math.degrees(pose.heading), "sigma_xy_m": sigma_xy,
+                      "sigma_heading_deg": math.degrees(sigma_heading),
+                      "inliers": outcome.motion.inliers if outcome.motion is not None else 0}
+        state.orients.append({"cycle": state.cycle, **record})
+        self.rover.pose_estimate = state.rover
+        if state.estimated_path:
+            state.estimated_path[-1] = [state.pose[0], state.pose[1], state.pose[3]]
+
     def map_cycle(self) -> None:
         state, cycle = self.state, self.state.cycle
+        if self.orienting:
+            self.orient_look()
         full = cycle == 1 or state.stalls > 0
         pan = self.settings.first_pan if full else self.settings.cycle_pan
         self.progress(f"cycle {cycle}: mapping (pan {pan[0]:g}:{pan[1]:g})")
@@ -224,6 +258,8 @@ class Navigation:
         leave_camera_as_acquired(self.ctx, results.get("acquired") or {})
         aligned = results["aligned"]
         after = RoverPose.from_matrix(np.asarray(aligned["correction"]) @ before.to_world())
+        if self.orienting and aligned["accepted"]:   # the odometer's chain follows the map's correction
+            odometer_of(self.server).shift(np.asarray(aligned["correction"]))
         state.pose = [after.x, after.y, after.z, after.heading, after.roll, after.pitch]
         self.rover.pose_estimate = after
         part = ProductPart(self.product, f"cycle-{cycle:02d}")
@@ -418,9 +454,12 @@ class Navigation:
         the job waits for; the wait ends at `break` too), checkpointed after each part."""
         state, settings = self.state, self.settings
         pace = Pace(self.mapping.truth_step, settings.pose_timeout_s)
-        moves = self.drive_by.waypoints(self.ctx, state.to_drive, state.rover, pace, self.goal, state.cycle,
-                                        self._announce_leg)
         try:
+            if self.orienting:
+                self.drive_looking(pace)
+                return
+            moves = self.drive_by.waypoints(self.ctx, state.to_drive, state.rover, pace, self.goal, state.cycle,
+                                            self._announce_leg)
             for moved in moves:
                 if moved.commanded is None:
                     self._driven_by_gnc(moved)
@@ -436,6 +475,28 @@ class Navigation:
             state.hazard_stops += 1
             state.cycles[-1]["hazard_stop"] = exc.sentence
             self.progress(f"cycle {state.cycle}: {exc.message}; mapping again to plan round it")
+
+    def drive_looking(self, pace: Pace) -> None:
+        """With orient: the legs cut into parts of at most orient_step_m, driven one by one with an
+        orient look after each (the last one's is the next cycle's), and a turn the sensor's view
+        could not bridge made first, in parts of at most orient_turn_deg with a look after each;
+        each part aims from where the last look put the rover."""
+        state, settings = self.state, self.settings
+        state.to_drive = pieces(state.pose[:2], state.to_drive, settings.orient_step_m)
+        while state.to_drive:
+            target = state.to_drive[0]
+            turn, _ = turn_and_distance((state.pose[0], state.pose[1], state.pose[3]), target)
+            parts = math.ceil(abs(math.degrees(turn)) / settings.orient_turn_deg - 1e-9)
+            for _ in range(parts if parts > 1 else 0):
+                self._driven(self.drive_by.act(self.ctx, "turn", turn / parts, pace), legs=0)
+                self.orient_look()
+                self.checkpoint()
+            moves = self.drive_by.waypoints(self.ctx, [target], state.rover, pace, self.goal, state.cycle,
+                                            self._announce_leg)
+            self._driven(next(iter(moves)))
+            if state.to_drive:
+                self.orient_look()
+                self.checkpoint()
 
     def _announce_leg(self, target: Sequence[float] | None) -> None:
         state = self.state
@@ -554,6 +615,17 @@ def short_of_unconfirmed(drivable: DrivablePrefix, plan: PlanResult, unconfirmed
 def unseen_near(layers: MapLayers, point: tuple[float, float], radius: float) -> MapLayers:
     """The map with everything within radius of a point made unknown again."""
     return with_unknown(layers, under_rover(layers.spec, RoverPose(*point), radius))
+
+
+def pieces(start: Sequence[float], waypoints: Sequence[Sequence[float]], step: float) -> list[list[float]]:
+    """The waypoints with points put in between so that no leg from start is longer than step."""
+    out, here = [], np.asarray(start[:2], dtype=np.float64)
+    for waypoint in waypoints:
+        target = np.asarray(waypoint[:2], dtype=np.float64)
+        count = max(1, math.ceil(float(np.linalg.norm(target - here)) / step - 1e-9))
+        out += [[float(v) for v in here + (target - here) * k / count] for k in range(1, count + 1)]
+        here = target
+    return out
 
 
 def clip_length(points: np.ndarray, max_length: float) -> np.ndarray:

@@ -87,18 +87,20 @@ class NoGoal(Exception):
     """The scene has no goal with a path for the rover; the campaign takes the next seed."""
 
 
-def run(seed: int, sensor: str, size: float, out: Path, sim_speed: float) -> dict:
+def run(seed: int, sensor: str, size: float, out: Path, sim_speed: float, orient: bool = True) -> dict:
     config = scene_config(seed, size)
     world = World.build(WorldConfig(**config))
     cover = world.rock_cover()
     goal, optimal, clearance = pick_goal(world, seed, size)
     del world
-    root = out / f"scene{seed}-{sensor}"
+    root = out / f"scene{seed}-{sensor}{'' if orient else '-no-orient'}"
     shutil.rmtree(root, ignore_errors=True)
     configs = root / "configs"
     shutil.copytree(REPO / "configs", configs)
     (configs / "world.toml").write_text(
         f"seed = {seed}\nsize_m = [{size}, {size}]\n[rocks]\ncover = {config['rocks']['cover']}\n")
+    navigation = configs / "navigation.toml"
+    navigation.write_text(navigation.read_text().replace("orient = false", f"orient = {str(orient).lower()}"))
     mapping = configs / "mapping.toml"
     mapping.write_text(mapping.read_text().replace('"../workflows"', json.dumps(str(REPO / "workflows"))))
     import conftest
@@ -190,6 +192,8 @@ def main() -> None:
     parser.add_argument("--sim-speed", type=float, default=100.0)
     parser.add_argument("--only", type=int, nargs="+", help="run only these seeds of the campaign (a quick check)")
     parser.add_argument("--out", type=Path, default=Path("/tmp/rvs-navigation"))
+    parser.add_argument("--orient", choices=["on", "off"], default="off", help="navigation.toml orient: an orient "
+                        "look at the start of each cycle")
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
     log = args.out / "results.jsonl"
@@ -207,7 +211,7 @@ def main() -> None:
     tasks = [(seed, sensor) for seed in seeds for sensor in args.sensors if (seed, sensor) not in done]
     results = [r for r in done.values() if r["seed"] in seeds and r["sensor"] in args.sensors]
     with ProcessPoolExecutor(max_workers=args.jobs) as pool:
-        futures = {pool.submit(run, seed, sensor, args.size, args.out, args.sim_speed): (seed, sensor)
+        futures = {pool.submit(run, seed, sensor, args.size, args.out, args.sim_speed, args.orient == "on"): (seed, sensor)
                    for seed, sensor in tasks}
         for future in futures:
             seed, sensor = futures[future]

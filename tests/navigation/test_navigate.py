@@ -87,6 +87,29 @@ def test_navigate_arrives_without_touching_a_rock(server, world):
     assert all(c["alignment"]["accepted"] for c in traverse["cycles"][1:])
 
 
+def test_navigate_with_orient_looks_between_its_maps(server_factory, world):
+    """navigation.toml orient: a look along the heading begins each cycle and follows every metre
+    and every turn of the drives (visual odometry and the sun); the map alignment starts from it."""
+    server = server_factory(configs={"navigation.toml": "orient = true\n", "world.toml": SMALL_WORLD})
+    goal = open_goal(world, (4.0, 4.6))
+    with server.connect() as c:
+        c.send(f"@nav navigate --to {goal[0]},{goal[1]} --tolerance 0.3 --max-steps 2")
+        reply, progress = c.reply("nav", timeout=600)
+    assert " OK " in reply, reply
+    product = product_of(server, reply)
+    traverse = json.loads((product / "traverse.json").read_text())
+    truth = json.loads((product / "truth" / "traverse.json").read_text())
+    looks = traverse["orients"]
+    assert {o["cycle"] for o in looks} == {c["cycle"] for c in traverse["cycles"]} and len(looks) > len(traverse["cycles"])
+    assert looks[0]["keyframe"] and any("cycle 2: orienting along the heading" in line for line in progress)
+    measured = [o for o in looks[1:] if "sources" in o]
+    assert len(measured) >= 0.7 * len(looks[1:]) and all(o["sources"] == ["tof", "sun"] for o in measured), looks
+    # Where a look put the rover before the next map, beside the truth of that moment.
+    for cycle in traverse["cycles"][1:]:
+        assert np.linalg.norm(np.array(cycle["pose_odometry"][:2]) - cycle["pose_true"][:2]) < 0.1, cycle
+    assert np.linalg.norm(np.array(traverse["pose"][:2]) - np.array(truth["path"][-1][:2])) < 0.12
+
+
 def test_break_stops_the_traverse_and_continue_finishes_it(server, world):
     goal = open_goal(world, (4.0, 4.6))
     with server.connect() as c:
