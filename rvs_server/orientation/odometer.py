@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from toolbox.geometry import RoverPose, invert
-from toolbox.odometry.chain import HeadingFix, PlanarBelief, carry, fuse_heading, wrap
+from toolbox.odometry.chain import HeadingFix, PlanarBelief, carry, fuse_heading, planar, wrap
 from toolbox.odometry.depth import DepthOdometryParams, depth_motion, depth_picture
 from toolbox.odometry.estimate import MotionEstimate, OdometryFailure
 from toolbox.odometry.stereo import StereoOdometryParams, match_picture, stereo_keyframe, stereo_motion
@@ -107,10 +107,11 @@ class Odometer:
         guess = self.reference.guess(estimate, look.camera_to_rover)
         try:
             motion, data = self._match(key, look, guess)
+            self._check_wheels(key, look, motion, guess, estimate, self.reference, settings)
         except OdometryFailure as failure:
             # The keyframe is too far behind: the last look, nearer, may still hold (it becomes the
             # keyframe this look was measured from).
-            fallback = self._from_last_look(look, estimate, epoch)
+            fallback = self._from_last_look(look, estimate, epoch, settings)
             if fallback is None:
                 picture = self._picture(key, look, None)
                 self._lost(look, estimate, epoch, key, guess, settings)
@@ -170,14 +171,17 @@ class Odometer:
         return Outcome(belief, None, True, True, self.keyframes, None, None, None, [], time.perf_counter() - started,
                        self._picture(self.keyframe, look, None))
 
-    def _from_last_look(self, look: Look, estimate: np.ndarray, epoch: int) -> tuple[Keyframe, MotionEstimate, Any] | None:
+    def _from_last_look(self, look: Look, estimate: np.ndarray, epoch: int,
+                        settings: OrientSettings) -> tuple[Keyframe, MotionEstimate, Any] | None:
         """The look measured from the last look instead of the keyframe, the last look promoted to
         keyframe; None when there is no such look or it does not match either."""
         if self.last_look is None or self.last_look[0].epoch != epoch:
             return None
         frame, reference = self.last_look
+        guess = reference.guess(estimate, look.camera_to_rover)
         try:
-            motion, data = self._match(frame, look, reference.guess(estimate, look.camera_to_rover))
+            motion, data = self._match(frame, look, guess)
+            self._check_wheels(frame, look, motion, guess, estimate, reference, settings)
         except OdometryFailure:
             return None
         self.keyframes += 1
@@ -201,6 +205,25 @@ class Odometer:
         self.keyframes += 1
         self.keyframe = Keyframe(look.sensor, epoch, data, belief, look.camera_to_rover, self.keyframes)
         self.reference, self.last_look = LastLook(np.eye(4), look.camera_to_rover, estimate), None
+
+    @staticmethod
+    def _check_wheels(key: Keyframe, look: Look, motion: MotionEstimate, guess: np.ndarray, estimate: np.ndarray,
+                      reference: LastLook, settings: OrientSettings) -> None:
+        """OdometryFailure (diverged) when the measured motion departs from dead reckoning's by more
+        than the wheels can be wrong by since the last look: ICP sliding along flat ground, or
+        tracks locked onto a repeated pattern, would otherwise pass for a measurement."""
+        since = planar(invert(reference.estimate_after) @ estimate)
+        driven, turned = math.hypot(since[0], since[1]), abs(math.degrees(wrap(since[2])))
+        measured, wheels = (planar(key.belief.rover_to_world @ key.camera_to_rover @ m @ invert(look.camera_to_rover))
+                            for m in (motion.key_from_new, guess))
+        off_m = math.hypot(*(measured[:2] - wheels[:2]))
+        off_deg = abs(math.degrees(wrap(measured[2] - wheels[2])))
+        limit_m = settings.wheels_m + settings.wheels_per_m * driven
+        limit_deg = settings.wheels_deg + settings.wheels_deg_per_deg * turned + settings.wheels_deg_per_m * driven
+        if off_m > limit_m or off_deg > limit_deg:
+            raise OdometryFailure("diverged", f"the {look.sensor} motion departs from the wheels' by {off_m:.2f} m and "
+                                  f"{off_deg:.1f} deg after {driven:.2f} m and {turned:.1f} deg: at most {limit_m:.2f} m "
+                                  f"and {limit_deg:.1f} deg believed (orient.toml wheels_*)")
 
     def _frame(self, look: Look) -> Any:
         if look.sensor == "stereo":

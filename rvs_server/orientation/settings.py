@@ -27,6 +27,13 @@ class OrientSettings(Settings):
     max_keyframe_deg: float = Field(25.0, gt=0, le=180, description="... or has turned this much from it")
     covariance_scale: float = Field(1.0, gt=0, description="the odometry's own covariance times this: what the "
                                     "campaign measured it to be over-confident by")
+    # How far dead reckoning may be off since the last look (about 5 sigma of the drive error):
+    # a measured motion farther from it is refused as diverged.
+    wheels_m: float = Field(0.05, ge=0, description="position: this much ...")
+    wheels_per_m: float = Field(0.10, ge=0, description="... plus this share of the distance driven")
+    wheels_deg: float = Field(3.0, ge=0, description="heading: this much ...")
+    wheels_deg_per_deg: float = Field(0.10, ge=0, description="... plus this share of the turn ...")
+    wheels_deg_per_m: float = Field(1.5, ge=0, description="... plus this many degrees per metre driven")
     lost_sigma_m: float = Field(0.5, gt=0, description="position sigma added to a keyframe taken after a failed "
                                 "look (dead reckoning carried the rover there)")
     lost_sigma_deg: float = Field(5.0, gt=0, description="heading sigma added to such a keyframe")
