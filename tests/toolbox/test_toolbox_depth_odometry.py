@@ -17,8 +17,9 @@ from drivers.sr4000 import CONFIDENCE_FULL, wait_for_exposure
 from drivers.sr4000_emulator import MRPT_INTRINSICS, Sr4000Emulator
 from toolbox.odometry.depth import (DepthFrame, DepthOdometryParams, check_plausible, depth_motion, depth_picture,
                                     information_condition, motion_error, pinhole_depth, point_to_plane_covariance,
-                                    point_to_plane_jacobian, refine_guess, register, transform_points, usable_points,
+                                    point_to_plane_jacobian, refine_guess, register, usable_points,
                                     voxel_cloud)
+from toolbox.geometry import apply
 from toolbox.odometry.estimate import OdometryFailure, exp_se3
 
 TILT_DEG = -30.0              # the TOF looks along the heading, this far down: the best of -15..-40 (bench)
@@ -230,7 +231,7 @@ def test_voxel_cloud_thins_and_turns_normals_to_the_camera():
 def test_register_recovers_a_known_motion():
     key = bumpy_surface()
     truth = exp_se3(np.r_[np.radians([0.5, 2.0, -0.5]), 0.03, -0.02, 0.08])
-    new = transform_points(np.linalg.inv(truth), key)
+    new = apply(np.linalg.inv(truth), key)
     found = register(new, key, np.eye(4), DepthOdometryParams())
     moved, turned = motion_error(truth, found.key_from_new)
     assert moved < 0.005 and turned < 0.1 and found.fitness > 0.9
@@ -239,7 +240,7 @@ def test_register_recovers_a_known_motion():
 def test_refine_guess_finds_the_height_dead_reckoning_missed():
     key = bumpy_surface()
     truth = exp_se3(np.r_[0, 0, 0, 0.0, -0.05, 0.6])
-    new = transform_points(np.linalg.inv(truth), key)
+    new = apply(np.linalg.inv(truth), key)
     guess = truth.copy()
     guess[:3, 3] += (0.0, 0.12, -0.06)                                     # 12 cm too low, 6 cm short
     refined = refine_guess(new, key, guess, DepthOdometryParams())
@@ -266,7 +267,7 @@ def test_the_jacobian_is_the_right_perturbation_of_key_from_new():
     n = rng.normal(size=(5, 3))
     n /= np.linalg.norm(n, axis=1, keepdims=True)
     t = exp_se3(np.r_[0.3, -0.2, 0.5, 1.0, 2.0, -0.5])
-    residual = lambda T: np.sum(n * (transform_points(T, p) - q), axis=1)
+    residual = lambda T: np.sum(n * (apply(T, p) - q), axis=1)
     numeric = np.column_stack([(residual(t @ exp_se3(e)) - residual(t @ exp_se3(-e))) / 2e-6
                                for e in np.eye(6) * 1e-6])
     np.testing.assert_allclose(point_to_plane_jacobian(p, n, t), numeric, atol=1e-6)

@@ -36,11 +36,13 @@ import numpy as np
 import open3d as o3d
 from scipy.spatial import cKDTree
 
+from toolbox.geometry import apply
+
 from .estimate import MotionEstimate, OdometryFailure
 
 __all__ = ["DepthFrame", "DepthOdometryParams", "depth_motion", "depth_picture", "usable_points",
            "voxel_cloud", "refine_guess", "register", "check_plausible", "point_to_plane_jacobian",
-           "point_to_plane_covariance", "information_condition", "pinhole_depth", "transform_points",
+           "point_to_plane_covariance", "information_condition", "pinhole_depth",
            "motion_error"]
 
 
@@ -138,10 +140,6 @@ class Registration:
 
 
 # ------------------------------------------------------------------------------ small steps
-def transform_points(transform: np.ndarray, points: np.ndarray) -> np.ndarray:
-    return np.asarray(points, dtype=np.float64) @ transform[:3, :3].T + transform[:3, 3]
-
-
 def usable_points(frame: DepthFrame, min_range_m: float, max_range_m: float) -> np.ndarray:
     """(N, 3) float64 valid, finite points with min_range <= |p| <= max_range."""
     points = frame.points[frame.valid].astype(np.float64)
@@ -175,7 +173,7 @@ def refine_guess(new_points: np.ndarray, key_points: np.ndarray, guess: np.ndarr
     if np.linalg.norm(along) < 1e-3:                         # no step: along the optical axis instead
         along = np.array([0.0, 0.0, 1.0]) - up * up[2]
     along /= max(np.linalg.norm(along), 1e-12)
-    moved = transform_points(guess, np.asarray(voxel_cloud(new_points, voxel, 2 * voxel).points))
+    moved = apply(guess, np.asarray(voxel_cloud(new_points, voxel, 2 * voxel).points))
     tree, reach = cKDTree(np.asarray(key_cloud.points)), params.correspondence_m[0]
     offsets = np.arange(-params.seed_span_m, params.seed_span_m + 1e-9, params.seed_step_m)
     shifts = (offsets[:, None, None] * along + offsets[None, :, None] * up).reshape(-1, 3)
@@ -263,7 +261,7 @@ def point_to_plane_covariance(new_points: np.ndarray, key_points: np.ndarray, ke
     as large sigmas rather than disappear. Neighbouring points' errors are correlated, so the figure is
     a lower bound on the true uncertainty (depth_motion scales it by params.covariance_scale)."""
     jacobian = point_to_plane_jacobian(new_points, key_normals, key_from_new)
-    residual = np.sum(key_normals * (transform_points(key_from_new, new_points) - key_points), axis=1)
+    residual = np.sum(key_normals * (apply(key_from_new, new_points) - key_points), axis=1)
     information = jacobian.T @ jacobian
     variance = float(residual @ residual) / max(1, len(residual) - 6)
     eigenvalues, vectors = np.linalg.eigh(information)
@@ -337,7 +335,7 @@ def depth_picture(key: DepthFrame, new: DepthFrame, estimate: MotionEstimate | N
     key_points = key_points[np.all(np.isfinite(key_points), axis=1)]
     if estimate is None or not shown.any() or not len(key_points):
         return picture
-    moved = transform_points(estimate.key_from_new, new.points[shown].astype(np.float64))
+    moved = apply(estimate.key_from_new, new.points[shown].astype(np.float64))
     distance, _ = cKDTree(key_points).query(moved, distance_upper_bound=4 * match_distance_m)
     share = np.clip((distance - match_distance_m) / (3 * match_distance_m), 0, 1)
     colour = np.column_stack([np.zeros_like(share), 255 * (1 - share), 255 * share])

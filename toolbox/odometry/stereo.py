@@ -28,6 +28,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from toolbox.camera import Intrinsics, project
+from toolbox.geometry import invert
 from toolbox.odometry.estimate import MotionEstimate, OdometryFailure, exp_se3
 from toolbox.odometry.features import bucketed_features, match_descriptors, refine_positions
 
@@ -366,7 +367,7 @@ def pnp_ransac(points_key: np.ndarray, pixels_new: np.ndarray, camera: Intrinsic
     inliers[found.ravel()] = True
     new_from_key = np.eye(4)
     new_from_key[:3, :3], new_from_key[:3, 3] = cv2.Rodrigues(rvec)[0], tvec.ravel()
-    return invert_rigid(new_from_key), inliers
+    return invert(new_from_key), inliers
 
 
 def reprojection_residuals(key_from_new: np.ndarray, points_key: np.ndarray, pixels_new: np.ndarray,
@@ -455,13 +456,6 @@ def refine_motion(key_from_new: np.ndarray, points_key: np.ndarray, pixels_new: 
     covariance = np.linalg.inv(jacobian.T @ jacobian)[:6, :6] * sigma2
     rms = float(np.sqrt(2 * np.mean(r * r)))
     return pose, (covariance + covariance.T) / 2, forward, rms
-
-
-def invert_rigid(pose: np.ndarray) -> np.ndarray:
-    out = np.eye(4)
-    out[:3, :3] = pose[:3, :3].T
-    out[:3, 3] = -pose[:3, :3].T @ pose[:3, 3]
-    return out
 
 
 def apply_inverse(key_from_new: np.ndarray, points_key: np.ndarray) -> np.ndarray:
