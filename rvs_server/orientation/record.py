@@ -8,6 +8,7 @@ from typing import Any
 import numpy as np
 
 from rvs_server.products.rasters import write_png
+from toolbox.colour import upscale, with_title
 from toolbox.odometry.chain import PlanarBelief
 
 from .look import Look
@@ -48,7 +49,12 @@ def write_outcome(product: Any, look: Look, outcome: Outcome, applied: bool) -> 
                                              "innovation_sigmas": fix.innovation_sigmas, "used": fix.used},
             "odometry_ms": 1000.0 * outcome.odometry_s}
     product.write_json("orient.json", data, "the rover's pose after this look, how it was measured and how sure it is")
-    _picture(product, outcome.picture)
+    if outcome.keyframe:
+        title = f"keyframe {outcome.keyframe_number}"
+    else:
+        title = (f"from keyframe {outcome.keyframe_number}: {motion.inliers} of {motion.matches} agree, "
+                 f"{'+'.join(outcome.sources)}")
+    _picture(product, outcome.picture, look.sensor, title)
 
 
 def write_failure(product: Any, look: Look, failed: OrientFailed) -> None:
@@ -56,10 +62,16 @@ def write_failure(product: Any, look: Look, failed: OrientFailed) -> None:
                                                                        "sentence": failed.failure.sentence},
                                        "keyframe_number": failed.keyframe_number},
                        "why this look could not be matched against the keyframe (the pose estimate is unchanged)")
-    _picture(product, failed.picture)
+    _picture(product, failed.picture, look.sensor, f"failed against keyframe {failed.keyframe_number}: "
+             f"{failed.failure.reason}")
 
 
-def _picture(product: Any, picture: np.ndarray | None) -> None:
-    if picture is not None:
+LEGEND = {"stereo": "tracks from the keyframe: green explained by the motion, red not",
+          "tof": "to the keyframe cloud: green near, red far, blue none"}
+
+
+def _picture(product: Any, picture: np.ndarray | None, sensor: str, title: str) -> None:
+    if picture is not None:   # the toolbox draws BGR; a TOF frame is enlarged to be read
+        rgb = with_title(with_title(upscale(np.ascontiguousarray(picture[..., ::-1])), LEGEND[sensor]), title)
         write_png(product.add("look.png", "the look: the features tracked from the keyframe (stereo) or the depth "
-                              "overlap (TOF)"), picture[..., ::-1])   # the toolbox draws BGR
+                              "overlap (TOF), with what the colours say"), rgb)
