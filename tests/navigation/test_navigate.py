@@ -15,7 +15,7 @@ from scipy.ndimage import distance_transform_edt
 from drivers.sim.config import WorldConfig
 from drivers.sim.world import World
 
-from conftest import SMALL_WORLD, pairs
+from conftest import REPO, SMALL_WORLD, pairs
 
 CELL = 0.05
 
@@ -57,7 +57,12 @@ def product_of(server, reply: str):
     return server.data_dir / "products" / re.search(r"product=(\S+)", reply).group(1)
 
 
-def test_navigate_arrives_without_touching_a_rock(server, world):
+def test_navigate_arrives_without_touching_a_rock(server_factory, world):
+    """... and with navigation.toml orient, looks along the heading between its maps (the other
+    navigate tests run without)."""
+    navigation = (REPO / "configs" / "navigation.toml").read_text()
+    assert "orient = false" in navigation
+    server = server_factory(configs={"navigation.toml": navigation.replace("orient = false", "orient = true")})
     goal = open_goal(world, (4.0, 4.6))
     with server.connect() as c:
         tag = "nav"
@@ -85,29 +90,17 @@ def test_navigate_arrives_without_touching_a_rock(server, world):
     assert np.linalg.norm(np.array(traverse["pose"][:2]) - true_end) < 0.12
     # The maps of the later cycles were aligned to the earlier ones.
     assert all(c["alignment"]["accepted"] for c in traverse["cycles"][1:])
-
-
-def test_navigate_with_orient_looks_between_its_maps(server_factory, world):
-    """navigation.toml orient: a look along the heading begins each cycle and follows every metre
-    and every turn of the drives (visual odometry and the sun); the map alignment starts from it."""
-    server = server_factory(configs={"navigation.toml": "orient = true\n", "world.toml": SMALL_WORLD})
-    goal = open_goal(world, (4.0, 4.6))
-    with server.connect() as c:
-        c.send(f"@nav navigate --to {goal[0]},{goal[1]} --tolerance 0.3 --max-steps 2")
-        reply, progress = c.reply("nav", timeout=600)
-    assert " OK " in reply, reply
-    product = product_of(server, reply)
-    traverse = json.loads((product / "traverse.json").read_text())
-    truth = json.loads((product / "truth" / "traverse.json").read_text())
+    # An orient look began each cycle and followed every metre and every turn of the drives: a
+    # keyframe first, then visual odometry and the sun, where the next map found the rover.
     looks = traverse["orients"]
     assert {o["cycle"] for o in looks} == {c["cycle"] for c in traverse["cycles"]} and len(looks) > len(traverse["cycles"])
     assert looks[0]["keyframe"] and any("cycle 2: orienting along the heading" in line for line in progress)
     measured = [o for o in looks[1:] if "sources" in o]
-    assert len(measured) >= 0.7 * len(looks[1:]) and all(o["sources"] == ["tof", "sun"] for o in measured), looks
-    # Where a look put the rover before the next map, beside the truth of that moment.
+    assert len(measured) >= 0.7 * len(looks[1:]) and all(o["sources"][0] == "tof" for o in measured), looks
+    # The sun's heading is fused unless the gate refuses it (a chain that went wrong disagrees with it).
+    assert sum("sun" in o["sources"] for o in measured) >= 0.7 * len(measured), looks
     for cycle in traverse["cycles"][1:]:
         assert np.linalg.norm(np.array(cycle["pose_odometry"][:2]) - cycle["pose_true"][:2]) < 0.1, cycle
-    assert np.linalg.norm(np.array(traverse["pose"][:2]) - np.array(truth["path"][-1][:2])) < 0.12
 
 
 def test_break_stops_the_traverse_and_continue_finishes_it(server, world):
