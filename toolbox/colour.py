@@ -98,3 +98,8 @@ def _stack(rgb: np.ndarray, strip: np.ndarray) -> np.ndarray:
         pad = np.full((rgb.shape[0], width - rgb.shape[1], 3), 20, dtype=np.uint8)
         rgb = np.concatenate([rgb, pad], axis=1)
     return np.concatenate([rgb, strip], axis=0)
+
+
+def grey(image: np.ndarray) -> np.ndarray:
+    """An 8-bit grey image of a camera frame: as it is if grey, else the mean of its channels."""
+    return image if image.ndim == 2 else np.round(image.mean(axis=2)).astype(np.uint8)

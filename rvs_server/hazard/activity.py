@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from rvs_server.activities import Activity
+from toolbox.colour import grey
 from toolbox.geometry import RoverPose, camera_to_world, relative_pose
 from toolbox.mapping import dem as dem_tools
 from toolbox.mapping.corridor import CorridorParams, CorridorView, HazardMemory, Hit, corridor_view
@@ -165,7 +166,7 @@ class HazardActivity(Activity):
         rect, config = self._rectification(pair, left_pose, right_pose)
 
         def stereo_frame_points():
-            left, right = (_grey(frames[role].image) for role in ("left", "right"))
+            left, right = (grey(frames[role].image) for role in ("left", "right"))
             points, valid = stereo_points(left, right, rect, config)
             return points, valid & (points[..., 2] < self.settings.stereo_max_range_m), left_pose
         return stereo_frame_points
@@ -197,8 +198,6 @@ class HazardActivity(Activity):
                 "product": self.product.name, "path": str(self.product.path)}
 
 
-def _grey(image: np.ndarray) -> np.ndarray:
-    return image if image.ndim == 2 else np.round(image.mean(axis=2)).astype(np.uint8)
 
 
 def _binned_grab(pair: Any, mode: str, timeout_s: float) -> dict:

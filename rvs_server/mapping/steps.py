@@ -15,6 +15,7 @@ from pydantic import Field
 
 from rvs_server.config import Range
 from rvs_server.workflow import Operations, StepContext, StepParams
+from toolbox.colour import grey
 from toolbox.camera import Intrinsics
 from toolbox.geometry import RoverPose, camera_to_world, footprint_polygon, relative_pose
 from toolbox.mapping import dem as dem_tools
@@ -174,7 +175,7 @@ def acquire_stereo(step: StepContext, params: StepParams, views: dict) -> dict[s
             _repeatable(pair.camera(role), index, None)
         frames = pair.grab("both", timeout_s=timeout)
         pan, tilt = math.radians(measured[0]), math.radians(measured[1])
-        return {"left": _grey(frames["left"].image), "right": _grey(frames["right"].image),
+        return {"left": grey(frames["left"].image), "right": grey(frames["right"].image),
                 "pan_tilt_deg": np.array(measured),
                 "left_to_world": camera_to_world(pose, mounts["left"], pan, tilt),
                 "right_to_world": camera_to_world(pose, mounts["right"], pan, tilt)}
@@ -182,8 +183,6 @@ def acquire_stereo(step: StepContext, params: StepParams, views: dict) -> dict[s
     return {"sensor": "stereo", "views": each_view(step, views, take)}
 
 
-def _grey(image: np.ndarray) -> np.ndarray:
-    return image if image.ndim == 2 else np.round(image.mean(axis=2)).astype(np.uint8)
 
 
 class StereoParams(StepParams):

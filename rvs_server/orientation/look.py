@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from rvs_server.devices.rover import SunReading
+from toolbox.colour import grey
 from toolbox.geometry import RoverPose, camera_to_rover, relative_pose
 from toolbox.odometry.depth import DepthFrame
 from toolbox.odometry.stereo import StereoRig
@@ -67,7 +68,7 @@ def take_look(ctx: "JobContext", sensor: str, settings: OrientSettings) -> Look:
         right_to_rover = camera_to_rover(calibration.mounts["right"], pan, tilt_rad)
         rig = StereoRig(left_k, right_k, relative_pose(left_to_rover, right_to_rover))
         return Look(**common, camera_to_rover=left_to_rover, acquire_s=time.perf_counter() - started,
-                    left=_grey(frames["left"].image), right=_grey(frames["right"].image), rig=rig)
+                    left=grey(frames["left"].image), right=grey(frames["right"].image), rig=rig)
     result = ctx.devices.tof.grab(frames=settings.tof_frames)
     frame, k = result.frame, calibration.tof_intrinsics
     points = frame.xyz().astype(np.float32)
@@ -77,7 +78,3 @@ def take_look(ctx: "JobContext", sensor: str, settings: OrientSettings) -> Look:
                        fx=k.fx, fy=k.fy, cx=k.cx, cy=k.cy)
     return Look(**common, camera_to_rover=camera_to_rover(calibration.mounts["tof"], pan, tilt_rad),
                 acquire_s=time.perf_counter() - started, depth=depth)
-
-
-def _grey(image: np.ndarray) -> np.ndarray:
-    return image if image.ndim == 2 else np.round(image.mean(axis=2)).astype(np.uint8)
