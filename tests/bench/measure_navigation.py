@@ -127,6 +127,7 @@ def run(seed: int, sensor: str, size: float, out: Path, sim_speed: float, orient
     estimated = np.array(traverse["pose"][:2])
     odometry = np.array(traverse["odometry"][:2])
     ok = " OK " in f" {reply} "
+    looks = traverse.get("orients", [])
     return {"seed": seed, "sensor": sensor, "cover": round(cover, 4), "goal": goal, "optimal_m": round(optimal, 3),
             "goal_clearance_m": round(clearance, 2), "ok": ok, "outcome": traverse["outcome"],
             "true_distance_to_goal": round(float(np.linalg.norm(true_end - goal)), 3),
@@ -135,7 +136,8 @@ def run(seed: int, sensor: str, size: float, out: Path, sim_speed: float, orient
             "length_ratio": round(driven / optimal, 3) if optimal > 0 else None,
             "localisation_error_m": round(float(np.linalg.norm(estimated - true_end)), 3),
             "odometry_error_m": round(float(np.linalg.norm(odometry - true_end)), 3),
-            "cycles": traverse["cycle"], "seconds": round(seconds, 1), "product": str(product), "reply": reply[:300]}
+            "cycles": traverse["cycle"], "looks": len(looks), "looks_failed": sum("failed" in look for look in looks),
+            "seconds": round(seconds, 1), "product": str(product), "reply": reply[:300]}
 
 
 def usable_seeds(first: int, count: int, size: float) -> tuple[list[int], list[int]]:
@@ -175,6 +177,10 @@ def summarise(results: list[dict], sensor: str) -> str:
                  f"median {100 * np.median(odo):.1f} cm, max {100 * np.max(odo):.1f} cm")
     lines.append(f"  cycles median {np.median([r['cycles'] for r in rows]):.0f}; wall time per run median "
                  f"{np.median([r['seconds'] for r in rows]):.0f} s")
+    looks = [r.get("looks", 0) for r in rows]
+    if any(looks):
+        lines.append(f"  orient looks per run median {np.median(looks):.0f}; {sum(r['looks_failed'] for r in rows)} of "
+                     f"{sum(looks)} refused (the estimate stayed dead reckoning's)")
     failures = [r for r in rows if not r["success"]]
     for r in failures:
         lines.append(f"  failed: scene {r['seed']} goal {r['goal']}: {r['outcome']} (true distance to goal "
