@@ -18,7 +18,7 @@ import numpy as np
 
 from toolbox.geometry import RoverPose, invert
 from toolbox.odometry.chain import HeadingFix, PlanarBelief, carry, fuse_heading, planar, wrap
-from toolbox.odometry.depth import DepthOdometryParams, depth_motion, depth_picture
+from toolbox.odometry.depth import DepthOdometryParams, depth_motion, depth_picture, depth_turn
 from toolbox.odometry.estimate import MotionEstimate, OdometryFailure
 from toolbox.odometry.stereo import StereoOdometryParams, match_picture, stereo_keyframe, stereo_motion
 from toolbox.odometry.sun import MAX_ELEVATION_DEG, sun_heading, sun_heading_sigma
@@ -106,8 +106,7 @@ class Odometer:
         started = time.perf_counter()
         guess = self.reference.guess(estimate, look.camera_to_rover)
         try:
-            motion, data = self._match(key, look, guess)
-            self._check_wheels(key, look, motion, guess, estimate, self.reference, settings)
+            motion, data = self._measure(key, look, guess, estimate, self.reference, settings)
         except OdometryFailure as failure:
             # The keyframe is too far behind: the last look, nearer, may still hold (it becomes the
             # keyframe this look was measured from).
@@ -180,8 +179,7 @@ class Odometer:
         frame, reference = self.last_look
         guess = reference.guess(estimate, look.camera_to_rover)
         try:
-            motion, data = self._match(frame, look, guess)
-            self._check_wheels(frame, look, motion, guess, estimate, reference, settings)
+            motion, data = self._measure(frame, look, guess, estimate, reference, settings)
         except OdometryFailure:
             return None
         self.keyframes += 1
@@ -205,6 +203,24 @@ class Odometer:
         self.keyframes += 1
         self.keyframe = Keyframe(look.sensor, epoch, data, belief, look.camera_to_rover, self.keyframes)
         self.reference, self.last_look = LastLook(np.eye(4), look.camera_to_rover, estimate), None
+
+    def _measure(self, key: Keyframe, look: Look, guess: np.ndarray, estimate: np.ndarray, reference: LastLook,
+                 settings: OrientSettings) -> tuple[MotionEstimate, Any]:
+        """The look's motion from the key, checked against the wheels. A TOF look after a turn on the
+        spot that free ICP got wrong (it trades yaw for a sideways step) is registered again over the
+        rotation about the rover's centre alone: the wheels know it did not step."""
+        try:
+            motion, data = self._match(key, look, guess)
+            self._check_wheels(key, look, motion, guess, estimate, reference, settings)
+            return motion, data
+        except OdometryFailure:
+            since = planar(invert(reference.estimate_after) @ estimate)
+            if look.sensor != "tof" or math.hypot(since[0], since[1]) > settings.turn_on_spot_m:
+                raise
+        pivot = invert(look.camera_to_rover)[:3, 3]          # the rover's centre in the camera's frame
+        motion = depth_turn(key.data, look.depth, pivot, self.depth_params, guess)
+        self._check_wheels(key, look, motion, guess, estimate, reference, settings)
+        return motion, look.depth
 
     @staticmethod
     def _check_wheels(key: Keyframe, look: Look, motion: MotionEstimate, guess: np.ndarray, estimate: np.ndarray,

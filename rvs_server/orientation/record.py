@@ -44,7 +44,8 @@ def write_outcome(product: Any, look: Look, outcome: Outcome, applied: bool) -> 
             "previous": _belief(outcome.previous),
             "motion": None if motion is None else {
                 "key_from_new": motion.key_from_new.tolist(), "covariance_rotvec_translation": motion.covariance.tolist(),
-                "matches": motion.matches, "inliers": motion.inliers, "overlap": motion.overlap, "rms": motion.rms},
+                "matches": motion.matches, "inliers": motion.inliers, "overlap": motion.overlap, "rms": motion.rms,
+                "method": motion.method},
             "sun": None if fix is None else {"heading_deg": math.degrees(fix.heading), "sigma_deg": math.degrees(fix.sigma),
                                              "innovation_sigmas": fix.innovation_sigmas, "used": fix.used},
             "odometry_ms": 1000.0 * outcome.odometry_s}

@@ -34,6 +34,9 @@ class OrientSettings(Settings):
     wheels_deg: float = Field(3.0, ge=0, description="heading: this much ...")
     wheels_deg_per_deg: float = Field(0.10, ge=0, description="... plus this share of the turn ...")
     wheels_deg_per_m: float = Field(1.5, ge=0, description="... plus this many degrees per metre driven")
+    turn_on_spot_m: float = Field(0.03, ge=0, description="TOF: a look the wheels put this close to the last one "
+                                  "(a turn on the spot) that free ICP cannot match is registered over the "
+                                  "rotation about the rover's centre alone")
     lost_sigma_m: float = Field(0.5, gt=0, description="position sigma added to a keyframe taken after a failed "
                                 "look (dead reckoning carried the rover there)")
     lost_sigma_deg: float = Field(5.0, gt=0, description="heading sigma added to such a keyframe")

@@ -120,7 +120,8 @@ def run(seed: int, sensor: str, length: float, out: Path, verbose: bool = False)
                           "odometry_ms": record.get("odometry_ms", 0.0),
                           "sigma_xy": float(fields["sigma_xy"]), "sigma_heading": math.radians(float(fields["sigma_heading"])),
                           "rekeyed": record.get("rekeyed"), "sources": fields.get("sources", ""),
-                          "inliers": int(fields.get("matches", 0))})
+                          "inliers": int(fields.get("matches", 0)),
+                          "method": (record.get("motion") or {}).get("method", "")})
             if verbose:
                 l = looks[-1]
                 print(f"  {sensor} {seed} look {calls}: error {100 * math.dist(l['true'][:2], l['estimate'][:2]):.1f} cm "
@@ -213,6 +214,9 @@ def summarise(results: list[dict], sensor: str) -> str:
                  f"per call {np.median(wall):.0f} ms median wall (p95 {np.percentile(wall, 95):.0f}), odometry "
                  f"{np.median(odo):.0f} ms median (p95 {np.percentile(odo, 95):.0f}); keyframes {sum(bool(l['rekeyed']) for l in looks)}"
                  f"/{len(looks)} looks; end error / believed sigma median {np.median(end_sigma):.2f}")
+    turns = sum(l.get("method") == "icp-rotation" for l in looks)
+    if turns:
+        lines.append(f"  {turns} looks after a turn on the spot measured by the rotation alone (free ICP refused)")
     for r in runs:
         for f in r["failures"][:2]:
             lines.append(f"  seed {r['seed']} failed: {f.strip()[:160]}")

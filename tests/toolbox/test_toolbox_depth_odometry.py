@@ -16,9 +16,9 @@ from drivers.sim.world import World, WorldConfig
 from drivers.sr4000 import CONFIDENCE_FULL, wait_for_exposure
 from drivers.sr4000_emulator import MRPT_INTRINSICS, Sr4000Emulator
 from toolbox.odometry.depth import (DepthFrame, DepthOdometryParams, check_plausible, depth_motion, depth_picture,
-                                    information_condition, motion_error, pinhole_depth, point_to_plane_covariance,
-                                    point_to_plane_jacobian, refine_guess, register, usable_points,
-                                    voxel_cloud)
+                                    depth_turn, information_condition, motion_error, pinhole_depth,
+                                    point_to_plane_covariance, point_to_plane_jacobian, refine_guess, register,
+                                    register_rotation, rotate_about, usable_points, voxel_cloud)
 from toolbox.geometry import apply
 from toolbox.odometry.estimate import OdometryFailure, exp_se3
 
@@ -302,3 +302,27 @@ def test_pinhole_depth_puts_points_where_the_pinhole_sees_them():
     assert depth[20, 45] == pytest.approx(2.0)
     assert depth[10, 65] == pytest.approx(1.0)                           # the nearer of two on one pixel
     assert np.count_nonzero(depth) == 2 and amplitude[10, 65] == 1.0
+
+
+def test_register_rotation_finds_a_turn_about_the_pivot_and_keeps_its_translation():
+    key, pivot = bumpy_surface(), np.array([0.1, 1.0, -0.6])    # the rover's centre: below, behind the camera
+    truth = rotate_about(pivot, np.radians([0.3, 12.0, -0.2]))   # y is up-down: a turn is about y
+    new = apply(np.linalg.inv(truth), key)
+    guess = rotate_about(pivot, np.radians([0.0, 10.5, 0.0]))    # the wheels' turn, 1.5 deg short
+    found = register_rotation(new, key, guess, pivot, DepthOdometryParams())
+    moved, turned = motion_error(truth, found.key_from_new)
+    assert turned < 0.05 and moved < 0.002 and found.fitness > 0.9
+    np.testing.assert_allclose(apply(found.key_from_new, pivot[None])[0], pivot, atol=1e-9)   # the pivot stays
+
+
+def test_a_turn_on_the_spot_is_measured_as_a_turn(rig):
+    key, new, truth, body, key_cal, attitude = step_pair(rig, 0.0, 0.0, HEADING, 0.0, 12.0)
+    guess = dead_reckoning(body, key_cal, 0.0, 12.0, attitude, np.random.default_rng(3), heading_error_deg=1.5)
+    new_cal = rig.rover.sensor_to_world("tof", 0.0, TILT_DEG, calibrated=True)
+    pivot = apply(np.linalg.inv(new_cal), rig.body()[:3, 3][None])[0]
+    estimate = depth_turn(key, new, pivot, DepthOdometryParams(), guess)
+    moved, turned = motion_error(truth, estimate.key_from_new)
+    assert turned < 0.3 and moved < 0.02
+    sigmas = np.sqrt(np.diag(estimate.covariance))
+    assert np.all(np.linalg.eigvalsh(estimate.covariance) > 0)
+    assert sigmas[3:].min() >= DepthOdometryParams().turn_step_sigma_m and np.degrees(sigmas[:3]).max() < 1.0

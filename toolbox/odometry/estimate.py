@@ -24,6 +24,7 @@ class MotionEstimate:
     inliers: int                # correspondences the estimate explains
     overlap: float              # share of the keyframe's usable features or points found again, 0..1
     rms: float                  # inliers' residual: pixels (stereo) or metres (depth)
+    method: str = ""            # what measured it: pnp (stereo), icp, icp-rotation (a turn on the spot)
 
 
 class OdometryFailure(Exception):

@@ -187,7 +187,7 @@ def stereo_motion(key: StereoKeyframe, left: np.ndarray, right: np.ndarray, rig:
                                           f"{params.max_rms_px} px needed")
     usable = int(key.with_depth.sum())
     estimate = MotionEstimate(refined, covariance, matches=len(index), inliers=int(kept.sum()),
-                              overlap=min(1.0, int(kept.sum()) / max(usable, 1)), rms=rms)
+                              overlap=min(1.0, int(kept.sum()) / max(usable, 1)), rms=rms, method="pnp")
     return estimate, new
 
 
