@@ -46,7 +46,7 @@ from rvs_server.navigation.commands import (NavigationSettings, check_reach, han
                                             module, operating_box, planning_layers, planning_params, under_rover,
                                             unlooked_ground, within_area, write_plan)
 from rvs_server.navigation.pictures import write_traverse
-from rvs_server.orientation import OrientFailed, OrientSettings, odometer_of, take_look
+from rvs_server.orientation import OrientFailed, OrientSettings, odometer_of, orient_here
 from rvs_server.products.manifests import ProductPart
 from rvs_server.products.rasters import read_geotiff
 from rvs_server.protocol import BadRequest
@@ -208,8 +208,7 @@ class Navigation:
         record: dict[str, Any]
         self.rover.pose_estimate = state.rover
         try:
-            look = take_look(self.ctx, sensor, self.orient_settings)
-            outcome = odometer_of(self.server).orient(look, self.orient_settings, self.rover.epoch)
+            outcome = orient_here(self.ctx, sensor, self.orient_settings)
         except OrientFailed as failed:
             record = {"failed": failed.failure.reason, "sentence": failed.failure.sentence}
         else:

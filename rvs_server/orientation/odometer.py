@@ -23,11 +23,12 @@ from toolbox.odometry.estimate import MotionEstimate, OdometryFailure
 from toolbox.odometry.stereo import StereoOdometryParams, match_picture, stereo_keyframe, stereo_motion
 from toolbox.odometry.sun import MAX_ELEVATION_DEG, sun_heading, sun_heading_sigma
 
-from .look import Look
+from .look import Look, take_look
 from .settings import OrientSettings
 
 if TYPE_CHECKING:
     from rvs_server.host import Host
+    from rvs_server.jobs import JobContext
 
 START_SIGMA_M = 0.05      # a chain's first keyframe: where dead reckoning or the GNC put the rover
 START_SIGMA_DEG = 2.0
@@ -287,3 +288,13 @@ def _level(pose: RoverPose, roll: float, pitch: float) -> np.ndarray:
 
 def odometer_of(server: "Host") -> Odometer:
     return server.state_of("orientation")
+
+
+def orient_here(ctx: "JobContext", sensor: str, settings: OrientSettings) -> Outcome:
+    """One look matched by the server's odometer, the belief made the rover's pose estimate: for jobs
+    that orient between their moves (navigate, route-follow). OrientFailed leaves the estimate as
+    dead reckoning has it."""
+    rover = ctx.devices.rover
+    outcome = odometer_of(ctx.server).orient(take_look(ctx, sensor, settings), settings, rover.epoch)
+    rover.pose_estimate = outcome.belief.pose
+    return outcome
