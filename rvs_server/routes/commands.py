@@ -80,6 +80,11 @@ class RoutesSettings(Settings):
     webp_quality: int = Field(90, ge=1, le=101)
     image_downscale: int = Field(1, ge=1, le=16)
     follow: FollowSettings = FollowSettings()
+    orient: bool = Field(False, description="simulated drives: a drive leg is made in parts of at most "
+                         "orient_step_m with an orient look after each, each part aimed back at the leg's line "
+                         "from where the look put the rover (the wheels' drift taken out within the leg)")
+    orient_sensor: Literal["stereo", "tof"] = Field("tof", description="the sensor those looks take")
+    orient_step_m: float = Field(1.0, gt=0.1, le=5.0, description="longest part of a drive leg between two looks")
     connect_window: int = Field(2, ge=0, le=20, description="route-connect keeps a link only where it is the "
                                 "best match within this many places along both routes")
     turn_cost_m: float = Field(0.3, ge=0, description="route-go: a radian of turning costs this many metres")
@@ -324,7 +329,9 @@ class FollowRun:
     def finish(self, reports: list[FollowReport], segments: list[Segment]) -> dict[str, Any]:
         ctx, product = self.ctx, self.product
         success = all(r.success for r in reports)
+        looks = self.rover.orient_looks
         document = {"matcher": self.matcher_name, "success": success, "images": self.rover.images,
+                    "orient_looks": len(looks), "orient_refused": [f"{look['failed']}: {look['sentence']}" for look in looks if look["failed"]],
                     "segments": [{**asdict(s), "reverse": s.reverse, "success": r.success, "reason": r.reason,
                                   "last_matched": r.last_matched, "legs": [asdict(leg) for leg in r.legs]}
                                  for s, r in zip(segments, reports)]}

@@ -16,9 +16,15 @@ branch's end. Scored per run:
 
 - success: the reply is OK and the rover truly stands within 0.5 m of the goal place;
 - final distance: from the goal place's true position;
-- deviation: the largest distance of the run's true path from the taught true path.
+- deviation: the largest distance of the run's true path from the taught true path;
+- images grabbed (each approach step and heading check is one) and, with routes.toml orient, the
+  orient looks and how many were refused.
+
+`--orient both` repeats each route with routes.toml orient off and on (drive legs in parts with a TOF
+orient look after each, aimed back at the leg's line), on the same taught routes and start poses.
 
     .venv/bin/python tests/bench/measure_routes.py [--scenes 10] [--first-seed 501] [--jobs 2]
+        [--matchers features contour] [--suns same moved] [--orient off|on|both]
     .venv/bin/python tests/bench/measure_routes.py --report [--out /tmp/rvs-routes]
 """
 from __future__ import annotations
@@ -140,10 +146,12 @@ def chords(cells: np.ndarray, blocked: np.ndarray, longest: float) -> np.ndarray
 
 
 def configs_for(root: Path, seed: int, pose: tuple[float, float, float], sun: tuple[float, float],
-                teacher: bool = False) -> Path:
+                teacher: bool = False, orient: bool = False) -> Path:
     configs = root / "configs"
     shutil.rmtree(configs, ignore_errors=True)
     shutil.copytree(REPO / "configs", configs)
+    routes = configs / "routes.toml"
+    routes.write_text(routes.read_text().replace("orient = false", f"orient = {str(orient).lower()}"))
     (configs / "world.toml").write_text(WORLD.format(seed=seed, size=SIZE_M, x=pose[0], y=pose[1], heading=pose[2],
                                                      azimuth=sun[0], elevation=sun[1]) + (TEACHER if teacher else ""))
     return configs
@@ -186,16 +194,18 @@ def record(client, seed: int, name: str, actions: list[tuple[str, float]], produ
             "bytes": int(stop["bytes"]), "bytes_per_m": float(stop["bytes_per_m"]), "taught": taught}
 
 
-def repeat(seed: int, out: Path, route: dict, matcher: str, sun_moved: bool, reverse: bool) -> dict:
+def repeat(seed: int, out: Path, route: dict, matcher: str, sun_moved: bool, reverse: bool,
+           orient: bool = False) -> dict:
     taught = np.array(route["taught"])
     place = taught[-1] if reverse else taught[0]
     goal = taught[0] if reverse else taught[-1]
     rng = np.random.default_rng([seed, int(reverse), int(sun_moved), len(matcher)])
-    name = f"{matcher}-{'moved' if sun_moved else 'same'}-{'reverse' if reverse else 'forward'}"
+    name = f"{matcher}-{'moved' if sun_moved else 'same'}-{'reverse' if reverse else 'forward'}{'-orient' if orient else ''}"
     command = f"route-follow --name r {'--reverse ' if reverse else ''}--matcher {matcher} --output {name}"
-    result = run_from(seed, out, name, near(place, rng), MOVED_SUN if sun_moved else SUN, [], command, goal, taught)
+    result = run_from(seed, out, name, near(place, rng), MOVED_SUN if sun_moved else SUN, [], command, goal, taught,
+                      orient)
     return {"seed": seed, "matcher": matcher, "sun": "moved" if sun_moved else "same",
-            "direction": "reverse" if reverse else "forward", **result,
+            "direction": "reverse" if reverse else "forward", "orient": orient, **result,
             "length_m": route["length_m"], "legs": route["legs"]}
 
 
@@ -207,7 +217,7 @@ def network(seed: int, out: Path, route: dict) -> dict:
     command = f"route-go --to b:{branch['legs']} --output network"
     result = run_from(seed, out, "network", near(route["taught"][0], rng), SUN, ["route-connect"], command,
                       np.array(branch["taught"][-1]), taught)
-    return {"seed": seed, "matcher": "features", "sun": "same", "direction": "network", **result,
+    return {"seed": seed, "matcher": "features", "sun": "same", "direction": "network", "orient": False, **result,
             "length_m": route["length_m"] + branch["length_m"], "legs": route["legs"] + branch["legs"]}
 
 
@@ -219,13 +229,13 @@ def near(place, rng: np.random.Generator) -> tuple[float, float, float]:
 
 
 def run_from(seed: int, out: Path, name: str, pose, sun, before: list[str], command: str, goal: np.ndarray,
-             taught: np.ndarray) -> dict:
+             taught: np.ndarray, orient: bool = False) -> dict:
     """A fresh server on the scene's data directory with the rover at pose: the commands `before`,
     then `command`, scored against the goal and the taught path."""
     root = out / f"scene{seed}"
     run = root / name
     shutil.rmtree(run, ignore_errors=True)
-    server = ServerProcess(data_dir=root / "data", config_dir=configs_for(run, seed, pose, sun))
+    server = ServerProcess(data_dir=root / "data", config_dir=configs_for(run, seed, pose, sun, orient=orient))
     started = time.perf_counter()
     server.start(timeout=300)
     try:
@@ -247,24 +257,28 @@ def run_from(seed: int, out: Path, name: str, pose, sun, before: list[str], comm
     ok = " OK " in f" {reply} "
     return {"ok": ok, "success": bool(ok and final <= ARRIVED_M), "final_m": round(final, 3),
             "max_deviation_m": round(float(gaps.max()), 3), "images": follow["images"],
+            "orient_looks": follow.get("orient_looks", 0), "orient_refused": len(follow.get("orient_refused", [])),
             "last_matched": follow["segments"][-1]["last_matched"], "seconds": round(seconds, 1),
             "reply": reply[:200]}
 
 
-def scene(seed: int, out: Path, matchers: tuple[str, ...] = ("features", "contour")) -> list[dict]:
+def scene(seed: int, out: Path, matchers: tuple[str, ...] = ("features", "contour"),
+          suns: tuple[str, ...] = ("same", "moved"), orients: tuple[bool, ...] = (False,),
+          with_network: bool = True) -> list[dict]:
     route = teach(seed, out)
     (out / f"scene{seed}" / "route.json").write_text(json.dumps(route))
     print(f"scene {seed}: taught {route['length_m']:.1f} m in {route['legs']} legs, "
           f"{route['bytes_per_m']:.0f} bytes/m", flush=True)
     results = []
-    runs = [(repeat, (seed, out, route, matcher, sun_moved, reverse))
-            for matcher in matchers for sun_moved in (False, True) for reverse in (False, True)]
-    if route["branch"]:
+    runs = [(repeat, (seed, out, route, matcher, sun == "moved", reverse, orient))
+            for matcher in matchers for sun in suns for reverse in (False, True) for orient in orients]
+    if route["branch"] and with_network:
         runs.append((network, (seed, out, route)))
     for function, arguments in runs:
         result = function(*arguments)
         results.append({**result, "bytes_per_m": route["bytes_per_m"]})
-        print(f"scene {seed} {result['matcher']} sun {result['sun']} {result['direction']}: "
+        print(f"scene {seed} {result['matcher']} sun {result['sun']} {result['direction']}"
+              f"{' orient' if result.get('orient') else ''}: "
               f"{'success' if result['success'] else 'FAILED'}, final {result['final_m']:.2f} m, "
               f"deviation {result['max_deviation_m']:.2f} m, {result['seconds']:.0f} s", flush=True)
     return results
@@ -278,19 +292,29 @@ def report(results: list[dict]) -> str:
     lengths = {r["seed"]: r["length_m"] for r in results}
     lines.append(f"{len(scenes)} scenes, routes {min(lengths.values()):.1f}-{max(lengths.values()):.1f} m, "
                  f"{np.mean([r['bytes_per_m'] for r in results]) / 1024:.1f} KiB stored per metre (mean)")
-    lines.append("matcher   sun    direction  success   final m (median, max)   deviation m (median, max)")
+    lines.append("matcher   sun    direction orient success   final m (median, max)   deviation m (median, max)"
+                 "   images/m   looks (refused)")
     for matcher in ("features", "contour"):
         for sun in ("same", "moved"):
             for direction in ("forward", "reverse", "network"):
-                rows = [r for r in results if (r["matcher"], r["sun"], r["direction"]) == (matcher, sun, direction)]
-                if not rows:
-                    continue
-                final = [r["final_m"] for r in rows]
-                deviation = [r["max_deviation_m"] for r in rows]
-                lines.append(f"{matcher:9s} {sun:6s} {direction:9s}  {sum(r['success'] for r in rows):2d}/{len(rows):<2d}"
-                             f"     {np.median(final):6.2f} {np.max(final):6.2f}          "
-                             f"{np.median(deviation):6.2f} {np.max(deviation):6.2f}")
+                for orient in (False, True):
+                    rows = [r for r in results if (r["matcher"], r["sun"], r["direction"], r.get("orient", False))
+                            == (matcher, sun, direction, orient)]
+                    if not rows:
+                        continue
+                    final = [r["final_m"] for r in rows]
+                    deviation = [r["max_deviation_m"] for r in rows]
+                    per_m = sum(r["images"] for r in rows) / sum(r["length_m"] for r in rows)
+                    looks = f"{sum(r.get('orient_looks', 0) for r in rows)} ({sum(r.get('orient_refused', 0) for r in rows)})"
+                    lines.append(f"{matcher:9s} {sun:6s} {direction:9s} {'on ' if orient else 'off'}    "
+                                 f"{sum(r['success'] for r in rows):2d}/{len(rows):<2d}"
+                                 f"     {np.median(final):6.2f} {np.max(final):6.2f}          "
+                                 f"{np.median(deviation):6.2f} {np.max(deviation):6.2f}"
+                                 f"          {per_m:5.2f}      {looks if orient else '-'}")
     return "\n".join(lines)
+
+
+ORIENTS = {"off": (False,), "on": (True,), "both": (False, True)}
 
 
 def main() -> None:
@@ -299,6 +323,10 @@ def main() -> None:
     parser.add_argument("--first-seed", type=int, default=501)
     parser.add_argument("--jobs", type=int, default=2)
     parser.add_argument("--matchers", nargs="+", default=["features", "contour"], choices=["features", "contour"])
+    parser.add_argument("--suns", nargs="+", default=["same", "moved"], choices=["same", "moved"])
+    parser.add_argument("--orient", choices=["off", "on", "both"], default="off",
+                        help="routes.toml orient for the repeats (both: each repeat with and without)")
+    parser.add_argument("--no-network", action="store_true", help="skip route-connect and route-go")
     parser.add_argument("--report", action="store_true", help="only summarise --out's results")
     parser.add_argument("--out", type=Path, default=Path("/tmp/rvs-routes"))
     args = parser.parse_args()
@@ -309,7 +337,8 @@ def main() -> None:
         done = {r["seed"] for r in results}
         seeds = [s for s in range(args.first_seed, args.first_seed + args.scenes) if s not in done]
         with ProcessPoolExecutor(max_workers=args.jobs) as pool:
-            for seed, future in [(s, pool.submit(scene, s, args.out, tuple(args.matchers))) for s in seeds]:
+            for seed, future in [(s, pool.submit(scene, s, args.out, tuple(args.matchers), tuple(args.suns),
+                                                           ORIENTS[args.orient], not args.no_network)) for s in seeds]:
                 try:
                     rows = future.result()
                 except Exception as exc:  # a scene that cannot run is reported, not hidden

@@ -18,6 +18,7 @@ INTERFACES = {
     ("navigation", "mapping"): {"rvs_server.mapping"},
     ("routes", "mapping"): {"rvs_server.mapping"},
     ("navigation", "orientation"): {"rvs_server.orientation"},
+    ("routes", "orientation"): {"rvs_server.orientation"},
 }
 
 

@@ -39,6 +39,9 @@ class LineRover:
         else:
             self.x += (value if kind == "forward" else -value) * self.drive_scale
 
+    def blind(self, kind, metres):
+        self.act(kind, metres)
+
 
 class PositionMatcher:
     """Same place within 0.5 m and 10 degrees; scale Z / (Z + d) with d how far short the live view is;
@@ -138,6 +141,9 @@ class PlaneRover:
             step = value if kind == "forward" else -value
             self.x += step * math.cos(self.h)
             self.y += step * math.sin(self.h)
+
+    def blind(self, kind, metres):
+        self.act(kind, metres)
 
 
 class ParallaxMatcher:

@@ -21,7 +21,8 @@ rover stays lost. Here each leg is followed as
                       with the last place matched.
 
 The rover is anything with `look()` (the matcher's descriptor of the live view), `act(kind, value)`
-(kind forward / backward in metres >= 0, turn in radians CCW) and `focal_px`. The follower is the
+(kind forward / backward in metres >= 0, turn in radians CCW), `blind(kind, metres)` (the blind part
+of a drive leg) and `focal_px`. The follower is the
 same for a simulated and a real rover, for either matcher, and for routes followed backward (the
 store reverses a route's legs: actions reversed, images swapped, the camera still facing forward,
 so the scale rule holds unchanged).
@@ -41,6 +42,10 @@ class RouteRover(Protocol):
     def look(self) -> Any: ...
 
     def act(self, kind: str, value: float) -> None: ...
+
+    def blind(self, kind: str, metres: float) -> None:
+        """The blind part of a drive leg (forward or backward, metres >= 0): a rover that measures its
+        own motion (visual odometry) keeps it on the leg's line; plain act otherwise."""
 
 
 @dataclass(frozen=True)
@@ -204,7 +209,9 @@ class RouteFollower:
         backing = sign < 0
         self.settle(leg.before, report, backing)
         blind = p.blind_fraction * leg.value
-        self.drive(sign * blind, report)
+        if blind > 1e-6:
+            self.rover.blind(leg.kind, blind)
+            report.travelled_m += blind
         along = blind                                       # along the leg's own direction
         search_step = max(p.min_step_m, p.search_step_fraction * leg.value)
         fine_steps = 0
