@@ -346,7 +346,7 @@ class Navigation:
                           f"({path_length(route):.2f} m) even after a full panorama", fused=fused)
             return
         state.stalls = 0
-        state.to_drive = route[1:].tolist()
+        state.to_drive = waypoints_from(state.pose[:2], route[1:].tolist())
         state.phase = "drive"
 
     def look_again(self, closed: PlanResult, open_map: MapLayers, unconfirmed: np.ndarray, unlooked: np.ndarray,
@@ -476,26 +476,32 @@ class Navigation:
             self.progress(f"cycle {state.cycle}: {exc.message}; mapping again to plan round it")
 
     def drive_looking(self, pace: Pace) -> None:
-        """With orient: the legs cut into parts of at most orient_step_m, driven one by one with an
-        orient look after each (the last one's is the next cycle's), and a turn the sensor's view
-        could not bridge made first, in parts of at most orient_turn_deg with a look after each;
-        each part aims from where the last look put the rover."""
+        """With orient: the legs cut into parts of at most orient_step_m and driven one by one, with
+        an orient look whenever the next part would take the rover more than orient_step_m from the
+        last look (a plan's short legs share one; the next cycle's look ends the drive), and a turn
+        the sensor's view could not bridge made first, in parts of at most orient_turn_deg with a
+        look after each; each part aims from where the last look put the rover."""
         state, settings = self.state, self.settings
         state.to_drive = pieces(state.pose[:2], state.to_drive, settings.orient_step_m)
+        since = 0.0      # metres driven since the last look: a plan's short legs share one
         while state.to_drive:
             target = state.to_drive[0]
-            turn, _ = turn_and_distance((state.pose[0], state.pose[1], state.pose[3]), target)
+            turn, distance = turn_and_distance((state.pose[0], state.pose[1], state.pose[3]), target)
             parts = math.ceil(abs(math.degrees(turn)) / settings.orient_turn_deg - 1e-9)
+            if parts > 1 and since > 0:     # the view before the turn, to turn from
+                self.orient_look()
             for _ in range(parts if parts > 1 else 0):
                 self._driven(self.drive_by.act(self.ctx, "turn", turn / parts, pace), legs=0)
                 self.orient_look()
-                self.checkpoint()
+                since = 0.0
+            if since + distance > settings.orient_step_m + 1e-6:   # this leg would outrun the step
+                self.orient_look()
+                since = 0.0
             moves = self.drive_by.waypoints(self.ctx, [target], state.rover, pace, self.goal, state.cycle,
                                             self._announce_leg)
             self._driven(next(iter(moves)))
-            if state.to_drive:
-                self.orient_look()
-                self.checkpoint()
+            since += distance
+            self.checkpoint()
 
     def _announce_leg(self, target: Sequence[float] | None) -> None:
         state = self.state
@@ -614,6 +620,19 @@ def short_of_unconfirmed(drivable: DrivablePrefix, plan: PlanResult, unconfirmed
 def unseen_near(layers: MapLayers, point: tuple[float, float], radius: float) -> MapLayers:
     """The map with everything within radius of a point made unknown again."""
     return with_unknown(layers, under_rover(layers.spec, RoverPose(*point), radius))
+
+
+MIN_LEG_M = 0.05     # a first waypoint nearer than this is where the rover stands (its cell's centre)
+
+
+def waypoints_from(here: Sequence[float], waypoints: list[list[float]]) -> list[list[float]]:
+    """The waypoints without the leading ones within MIN_LEG_M of here (the last one stays): turning
+    toward a point 2 cm away points the rover anywhere (the tests' navigate turned 88 deg, drove
+    2 cm, and turned 148 deg back)."""
+    out = list(waypoints)
+    while len(out) > 1 and math.dist(here[:2], out[0][:2]) < MIN_LEG_M:
+        out.pop(0)
+    return out
 
 
 def pieces(start: Sequence[float], waypoints: Sequence[Sequence[float]], step: float) -> list[list[float]]:

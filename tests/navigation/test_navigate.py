@@ -4,6 +4,7 @@ on a rock with its pictures, and hands its waypoints to a GNC that answers with 
 from __future__ import annotations
 
 import json
+import math
 import re
 import time
 import tomllib
@@ -57,6 +58,10 @@ def product_of(server, reply: str):
     return server.data_dir / "products" / re.search(r"product=(\S+)", reply).group(1)
 
 
+def path_length(path: list[list[float]]) -> float:
+    return float(np.sum(np.linalg.norm(np.diff(np.asarray(path)[:, :2], axis=0), axis=1))) if len(path) > 1 else 0.0
+
+
 def test_navigate_arrives_without_touching_a_rock(server_factory, world):
     """... and with navigation.toml orient, looks along the heading between its maps (the other
     navigate tests run without)."""
@@ -90,10 +95,16 @@ def test_navigate_arrives_without_touching_a_rock(server_factory, world):
     assert np.linalg.norm(np.array(traverse["pose"][:2]) - true_end) < 0.12
     # The maps of the later cycles were aligned to the earlier ones.
     assert all(c["alignment"]["accepted"] for c in traverse["cycles"][1:])
-    # An orient look began each cycle and followed every metre and every turn of the drives: a
-    # keyframe first, then visual odometry and the sun, where the next map found the rover.
+    # An orient look began each cycle and came whenever the drive would take the rover more than a
+    # metre (orient_step_m) from the last one, and after every part of a large turn: a keyframe
+    # first, then visual odometry and the sun, where the next map found the rover. Looks within a
+    # cycle are no more than the step apart (plus the drive error), and short legs share one.
     looks = traverse["orients"]
     assert {o["cycle"] for o in looks} == {c["cycle"] for c in traverse["cycles"]} and len(looks) > len(traverse["cycles"])
+    gaps = [math.dist((a["x"], a["y"]), (b["x"], b["y"])) for a, b in zip(looks, looks[1:])
+            if a["cycle"] == b["cycle"] and "x" in a and "x" in b]    # a refused look has no place
+    assert gaps and max(gaps) < 1.1, looks
+    assert len(looks) < len(traverse["cycles"]) + 2 * path_length(traverse["estimated_path"]) + 4, looks
     assert looks[0]["keyframe"] and any("cycle 2: orienting along the heading" in line for line in progress)
     measured = [o for o in looks[1:] if "sources" in o]
     assert len(measured) >= 0.7 * len(looks[1:]) and all(o["sources"][0] == "tof" for o in measured), looks
