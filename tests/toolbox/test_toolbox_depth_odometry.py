@@ -18,7 +18,7 @@ from drivers.sr4000_emulator import MRPT_INTRINSICS, Sr4000Emulator
 from toolbox.odometry.depth import (DepthFrame, DepthOdometryParams, check_plausible, depth_motion, depth_picture,
                                     depth_turn, information_condition, motion_error, pinhole_depth,
                                     point_to_plane_covariance, point_to_plane_jacobian, refine_guess, register,
-                                    register_rotation, rotate_about, usable_points, voxel_cloud)
+                                    register_rotation, rotate_about, seen_share, usable_points, voxel_cloud)
 from toolbox.geometry import apply
 from toolbox.odometry.estimate import OdometryFailure, exp_se3
 
@@ -259,6 +259,24 @@ def test_check_plausible_refuses_by_reason():
         check_plausible(replace(found, fitness=0.1), np.eye(4), DepthOdometryParams())
     with pytest.raises(OdometryFailure, match="few-inliers"):
         check_plausible(found, np.eye(4), DepthOdometryParams(min_inliers=10 ** 6))
+    # A long step leaves little in common: a small overlap passes when most of what was in view agrees.
+    check_plausible(replace(found, fitness=0.2), np.eye(4), DepthOdometryParams(), seen=0.25)
+    with pytest.raises(OdometryFailure, match="no-overlap: only 20% .* \\(40% of the 50% it could see\\)"):
+        check_plausible(replace(found, fitness=0.2), np.eye(4), DepthOdometryParams(), seen=0.5)
+    with pytest.raises(OdometryFailure, match="no-overlap"):
+        check_plausible(replace(found, fitness=0.05), np.eye(4), DepthOdometryParams(), seen=0.05)
+
+
+def test_seen_share_is_what_the_keyframe_camera_could_see():
+    points = bumpy_surface()
+    key = frame_of(points, (60, 60))
+    key = replace(key, fx=15.0, fy=15.0, cx=30.0, cy=30.0)     # a pinhole that holds the surface
+    params = DepthOdometryParams(max_range_m=10.0)
+    assert seen_share(points, key, np.eye(4), params) > 0.95
+    behind = exp_se3(np.r_[0.0, np.pi, 0.0, 0.0, 0.0, 0.0])    # turned round: nothing in front of it
+    assert seen_share(points, key, behind, params) == 0.0
+    ahead = exp_se3(np.r_[0.0, 0.0, 0.0, 0.0, 0.0, 2.0])       # seen from 2 m farther back: the far part
+    assert 0.2 < seen_share(points, key, ahead, DepthOdometryParams(max_range_m=4.5)) < 0.7   # is out of range
 
 
 def test_the_jacobian_is_the_right_perturbation_of_key_from_new():

@@ -9,7 +9,11 @@ The method, step by step (`depth_motion`), each step one small pure function:
     refine_guess         the guess's height and step length searched on a small grid (dead reckoning
                          does not know the terrain's height under the wheels)
     register             point-to-plane ICP (Open3D, Tukey kernel), coarse to fine, from the guess
-    check_plausible      refuse a result that left the guess implausibly far or found too little
+    seen_share           the share of the new cloud the keyframe camera could have seen after the motion
+    check_plausible      refuse a result that left the guess implausibly far or found too little: a
+                         long step leaves the two views little in common, so a small overlap is taken
+                         when most of what the keyframe could see agrees (campaign: 1.4 m steps at 19-29 %
+                         overlap were right; wrong results agreed on under half of what was in view)
     point_to_plane_covariance
                          sigma^2 (J^T J)^-1 of the final correspondences, in the contract's right
                          perturbation (rotation vector, translation) of key_from_new
@@ -47,7 +51,7 @@ from toolbox.geometry import apply
 from .estimate import MotionEstimate, OdometryFailure, exp_se3
 
 __all__ = ["DepthFrame", "DepthOdometryParams", "depth_motion", "depth_picture", "usable_points",
-           "voxel_cloud", "refine_guess", "register", "check_plausible", "point_to_plane_jacobian",
+           "voxel_cloud", "refine_guess", "register", "seen_share", "check_plausible", "point_to_plane_jacobian",
            "point_to_plane_covariance", "information_condition", "pinhole_depth",
            "motion_error", "depth_turn", "register_rotation", "rotate_about"]
 
@@ -107,7 +111,9 @@ class DepthOdometryParams:
     min_range_m: float = 0.3                 # points nearer are dropped (mast, wheels, saturation)
     max_range_m: float = 4.5                 # and farther (30 MHz non-ambiguity range is 5 m)
     min_points: int = 300                    # usable points (after cropping) each frame needs: else no-depth
-    min_overlap: float = 0.3                 # share of the new frame's points matched in the keyframe: else no-overlap
+    min_overlap: float = 0.3                 # share of the new frame's points matched in the keyframe: else no-overlap,
+    min_seen_match: float = 0.6              # ... unless this share of the points the keyframe could see matched
+    min_overlap_floor: float = 0.1           # ... and at least this share overall
     min_inliers: int = 200                   # matched points at the finest scale: else few-inliers
     max_departure_m: float = 0.5             # the result may move this far from the guess: else diverged
     max_departure_deg: float = 15.0          # and turn this far from it
@@ -127,8 +133,9 @@ class DepthOdometryParams:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)!r}")
         if not 0 <= self.min_range_m < self.max_range_m:
             raise ValueError(f"need 0 <= min_range_m < max_range_m, got {self.min_range_m}, {self.max_range_m}")
-        if not 0 <= self.min_overlap <= 1:
-            raise ValueError(f"min_overlap must be in [0, 1], got {self.min_overlap!r}")
+        for name in ("min_overlap", "min_seen_match", "min_overlap_floor"):
+            if not 0 <= getattr(self, name) <= 1:
+                raise ValueError(f"{name} must be in [0, 1], got {getattr(self, name)!r}")
         if not self.scales or any(s <= 0 for s in self.scales) or self.iterations < 1:
             raise ValueError(f"scales must be positive and iterations >= 1, got {self.scales}, {self.iterations}")
         if len(self.correspondence_m) != len(self.scales) or any(d <= 0 for d in self.correspondence_m):
@@ -268,8 +275,27 @@ def motion_error(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
     return float(np.linalg.norm(delta[:3, 3])), float(angle)
 
 
-def check_plausible(registration: Registration, guess: np.ndarray, params: DepthOdometryParams) -> None:
-    """Raise OdometryFailure when the registration found too little or left the guess too far."""
+def seen_share(points: np.ndarray, key: DepthFrame, key_from_new: np.ndarray, params: DepthOdometryParams) -> float:
+    """Share of points (new frame) that land, moved by key_from_new, inside the keyframe camera's
+    image (its pinhole) and usable range: what the keyframe could have seen of them."""
+    if not len(points):
+        return 0.0
+    moved = apply(key_from_new, points)
+    h, w = key.valid.shape
+    z = moved[:, 2]
+    ahead = z > 1e-6
+    u = key.fx * moved[ahead, 0] / z[ahead] + key.cx
+    v = key.fy * moved[ahead, 1] / z[ahead] + key.cy
+    distance = np.linalg.norm(moved[ahead], axis=1)
+    inside = ((u >= 0) & (u < w) & (v >= 0) & (v < h) & (distance >= params.min_range_m)
+              & (distance <= params.max_range_m))
+    return float(inside.sum()) / len(points)
+
+
+def check_plausible(registration: Registration, guess: np.ndarray, params: DepthOdometryParams,
+                    seen: float = 1.0) -> None:
+    """Raise OdometryFailure when the registration found too little or left the guess too far; seen:
+    the share of the new cloud the keyframe could see after the motion (`seen_share`)."""
     if not np.all(np.isfinite(registration.key_from_new)):
         raise OdometryFailure("diverged", "the ICP gave a non-finite transform")
     moved, turned = motion_error(guess, registration.key_from_new)
@@ -277,10 +303,13 @@ def check_plausible(registration: Registration, guess: np.ndarray, params: Depth
         raise OdometryFailure("diverged", f"the ICP result lies {moved:.2f} m and {turned:.1f} deg from the "
                               f"guess; at most {params.max_departure_m:.2f} m and {params.max_departure_deg:.1f} "
                               "deg are plausible")
-    if registration.fitness < params.min_overlap:
-        raise OdometryFailure("no-overlap", f"only {registration.fitness:.0%} of the new frame's points lie within "
-                              f"{registration.max_distance * 100:.0f} cm of the keyframe's; at least "
-                              f"{params.min_overlap:.0%} are needed")
+    fitness = registration.fitness
+    agrees = fitness >= params.min_overlap_floor and fitness >= params.min_seen_match * seen
+    if fitness < params.min_overlap and not agrees:
+        raise OdometryFailure("no-overlap", f"only {fitness:.0%} of the new frame's points lie within "
+                              f"{registration.max_distance * 100:.0f} cm of the keyframe's ({fitness / max(seen, 1e-9):.0%} "
+                              f"of the {seen:.0%} it could see); at least {params.min_overlap:.0%}, or "
+                              f"{params.min_seen_match:.0%} of what it could see, are needed")
     if len(registration.correspondences) < params.min_inliers:
         raise OdometryFailure("few-inliers", f"{len(registration.correspondences)} points matched the keyframe; "
                               f"at least {params.min_inliers} are needed")
@@ -341,8 +370,9 @@ def depth_motion(key: DepthFrame, new: DepthFrame, params: DepthOdometryParams |
     # Registration: the guess's height and step length searched, then coarse-to-fine robust
     # point-to-plane ICP.
     registration = register(new_points, key_points, refine_guess(new_points, key_points, guess, params), params)
-    # Plausibility: enough overlap, not run away from the guess.
-    check_plausible(registration, guess, params)
+    # Plausibility: enough overlap (of what the keyframe could see), not run away from the guess.
+    check_plausible(registration, guess, params,
+                    seen_share(registration.new_points, key, registration.key_from_new, params))
     # Covariance of the final correspondences.
     pairs = registration.correspondences
     covariance, _, rms = point_to_plane_covariance(registration.new_points[pairs[:, 0]],
@@ -369,7 +399,8 @@ def depth_turn(key: DepthFrame, new: DepthFrame, pivot: np.ndarray, params: Dept
                                   f"{params.min_range_m:.1f}-{params.max_range_m:.1f} m; at least "
                                   f"{params.min_points} are needed")
     registration = register_rotation(new_points, key_points, guess, pivot, params)
-    check_plausible(registration, guess, params)
+    check_plausible(registration, guess, params,
+                    seen_share(registration.new_points, key, registration.key_from_new, params))
     pairs = registration.correspondences
     _, information, rms = point_to_plane_covariance(registration.new_points[pairs[:, 0]],
                                                     registration.key_points[pairs[:, 1]],
