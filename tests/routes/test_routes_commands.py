@@ -114,8 +114,9 @@ def test_a_route_with_no_action_cannot_be_stopped(server_factory):
 
 def test_a_drive_leg_followed_with_orient_looks_keeps_to_its_line(server_factory):
     """routes.toml orient: the drive leg is made in parts with a TOF orient look after each, each part
-    aimed back at the leg's line; the rover arrives. This world's ground is smooth, where ICP may
-    slide on a short part: the wheel check refuses that look (dead reckoning stands in)."""
+    aimed back at the leg's line; here backing up (the route followed in reverse from where it
+    ends), so the rear is what is steered. This world's ground is smooth, where ICP may slide on a
+    short part: the wheel check refuses that look (dead reckoning stands in)."""
     routes = (REPO / "configs" / "routes.toml").read_text()
     assert "orient = false" in routes
     server = server_factory(configs={"world.toml": WORLD, "routes.toml": routes.replace("orient = false", "orient = true")})
@@ -125,15 +126,11 @@ def test_a_drive_leg_followed_with_orient_looks_keeps_to_its_line(server_factory
         command(c, "drive --forward 3")
         line, _ = command(c, "route-record stop")
         taught = true_path(products, pairs(line)["product"])
-        command(c, "drive --turn 180")
-        command(c, "drive --forward 3")
-        command(c, "drive --turn 180")               # back at the start, with the drive error's offset
-        line, _ = command(c, "route-follow --name line")
+        line, _ = command(c, "route-follow --name line --reverse")
         assert " OK " in f" {line} ", line
-        product = products / pairs(line)["product"]
-        follow = json.loads((product / "follow.json").read_text())
+        follow = json.loads((products / pairs(line)["product"] / "follow.json").read_text())
         # Two looks before the leg (the chain's first, then one that fuses the sun) and one after each
         # of its parts (2.4 m blind: three parts of at most 1 m).
         assert follow["orient_looks"] == 5 and len(follow["orient_refused"]) <= 1, follow
         driven = true_path(products, pairs(line)["product"])
-        assert math.dist(driven[-1][:2], taught[-1][:2]) < 0.25 and deviation(driven, taught) < 0.3
+        assert math.dist(driven[-1][:2], taught[0][:2]) < 0.25 and deviation(driven, taught) < 0.3
