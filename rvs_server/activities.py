@@ -34,6 +34,7 @@ if TYPE_CHECKING:
 log = logging.getLogger("rvs.activities")
 
 KINDS = ("hazard", "track")   # every kind `status` reports on or off
+COMMANDS = {"hazard": ("hazard-start", "hazard-stop"), "track": ("track3d-start", "track3d-stop")}
 STOP_TIMEOUT_S = 30.0         # wall seconds a stop waits for the frame in progress
 
 
@@ -120,7 +121,7 @@ class Activities:
         if kind in self._running:
             activity = self._running[kind]
             raise WrongMode(f"{command}: {kind} is already running ({activity.frames} frames so far); "
-                            f"{kind}-stop first")
+                            f"{COMMANDS[kind][1]} first")
 
     def start(self, activity: Activity, command: str) -> None:
         self.require_free(activity.kind, command)
@@ -132,7 +133,7 @@ class Activities:
         """Stop the running activity of `kind` and give its summary; 409 when none runs."""
         activity = self._running.pop(kind, None)   # at once: a second stop meanwhile finds none
         if activity is None:
-            raise WrongMode(f"{command}: no {kind} activity is running ({kind}-start starts one)")
+            raise WrongMode(f"{command}: no {kind} activity is running ({COMMANDS[kind][0]} starts one)")
         started = time.monotonic()
         summary = await asyncio.get_running_loop().run_in_executor(None, activity.stop)
         log.info("%s stopped after %d frames (%.2f s to stop)", kind, activity.frames, time.monotonic() - started)

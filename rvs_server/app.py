@@ -89,9 +89,10 @@ def read_configuration(config_dir: Path, overrides: Mapping[str, Any], modules: 
 
 
 def all_modules() -> list[Module]:
-    from rvs_server import hazard, hopping, imaging, mapping, navigation, orientation, ptu, routes, simulation, system
+    from rvs_server import (hazard, hopping, imaging, mapping, navigation, orientation, ptu, routes, simulation,
+                            system, tracking)
     return [system.module, ptu.module, imaging.module, mapping.module, navigation.module, hopping.module,
-            routes.module, hazard.module, orientation.module, simulation.module]
+            routes.module, hazard.module, orientation.module, simulation.module, tracking.module]
 
 
 class ModuleConfig:

@@ -280,7 +280,10 @@ class Dispatcher:
             cfg = build_config(spec.name, spec.config, defaults, values)
         self.admit(spec)
         if spec.kind == "job":
+            sharing = self.server.devices.sharing
             for name in spec.devices:  # fail before a job exists, not half-way through it
+                if sharing.claimed_by(name):
+                    raise Busy(f"{spec.name}: {sharing.claim_sentence(name)}")
                 self.server.devices[name].require_healthy()
         if spec.validate is not None:
             spec.validate(self.server, cfg)

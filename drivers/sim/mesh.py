@@ -40,7 +40,9 @@ class TriangleSurface:
     def with_dynamic(self, vertices: np.ndarray, triangles: np.ndarray) -> "TriangleSurface":
         """A new surface: this one's static part (arrays and Embree scene shared, not rebuilt) plus
         `vertices` (V, 3) and `triangles` (T, 3, indices into `vertices`) as its dynamic part, in a
-        small scene of its own (milliseconds to build). No triangles: the static surface itself."""
+        small scene of its own (milliseconds to build). No triangles: the static surface itself.
+        The static arrays are not copied (a walking person makes a new surface every frame): vertices,
+        triangles and face_normals are Stacked, static then dynamic."""
         static = self.static
         if len(triangles) == 0:
             return static
@@ -50,9 +52,9 @@ class TriangleSurface:
         dynamic_scene = o3d.t.geometry.RaycastingScene()
         dynamic_scene.add_triangles(o3d.core.Tensor(vertices.astype(np.float32)), o3d.core.Tensor(triangles))
         surface = object.__new__(TriangleSurface)
-        surface.vertices = np.concatenate([static.vertices, vertices])
-        surface.triangles = np.concatenate([static.triangles, triangles + np.uint32(len(static.vertices))])
-        surface.face_normals = np.concatenate([static.face_normals, _face_normals(vertices, triangles)])
+        surface.vertices = Stacked(static.vertices, vertices)
+        surface.triangles = Stacked(static.triangles, triangles + np.uint32(len(static.vertices)))
+        surface.face_normals = Stacked(static.face_normals, _face_normals(vertices, triangles))
         surface.top = max(static.top, float(vertices[:, 2].max()) + 1.0)
         surface.static, surface.static_triangles = static, static.static_triangles
         surface._scene, surface._dynamic_scene = static._scene, dynamic_scene
@@ -122,6 +124,45 @@ class TriangleSurface:
     def memory_bytes(self) -> int:
         """Bytes held in numpy by the surface (Embree's own copy and BVH come on top)."""
         return self.vertices.nbytes + self.triangles.nbytes + self.face_normals.nbytes
+
+
+class Stacked:
+    """Two arrays read as one, `static` then `dynamic`, along the first axis, without copying the
+    big static one: integer-array indexing (what the renderer and the truth queries do) picks from
+    each; anything else gets the concatenation, made once."""
+
+    def __init__(self, static: np.ndarray, dynamic: np.ndarray):
+        self.static, self.dynamic = static, dynamic
+        self.shape = (len(static) + len(dynamic),) + static.shape[1:]
+        self.dtype = static.dtype
+        self._joined: np.ndarray | None = None
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def __getitem__(self, index):
+        if isinstance(index, np.ndarray) and index.dtype.kind in "iu":
+            split = len(self.static)
+            flat = index.ravel().astype(np.int64)
+            out = np.empty((len(flat),) + self.shape[1:], dtype=self.dtype)
+            first = flat < split
+            out[first] = self.static[flat[first]]
+            out[~first] = self.dynamic[flat[~first] - split]
+            return out.reshape(index.shape + self.shape[1:])
+        return self.joined()[index]
+
+    def __array__(self, dtype=None, copy=None):
+        joined = self.joined()
+        return joined if dtype is None else joined.astype(dtype)
+
+    def joined(self) -> np.ndarray:
+        if self._joined is None:
+            self._joined = np.concatenate([self.static, self.dynamic])
+        return self._joined
+
+    @property
+    def nbytes(self) -> int:
+        return self.static.nbytes + self.dynamic.nbytes
 
 
 def grid_surface_parts(grid: GridSpec, heights: np.ndarray, triangle_points: np.ndarray):

@@ -31,24 +31,45 @@ INCLINOMETER_NOISE_DEG = 0.1   # 1 sigma of roll and of pitch as the body's incl
 
 @dataclass(frozen=True)
 class Walk:
-    """An astronaut walking from `start` to `end` and back at `speed`, from simulation time `since`."""
+    """An astronaut walking along `points` (at least two) and back, over and over, at `speed` from
+    simulation time `since`, standing still `pause` seconds at each end before it turns back."""
 
-    start: tuple[float, float]
-    end: tuple[float, float]
+    points: tuple[tuple[float, float], ...]
     speed: float
     since: float
+    pause: float = 0.0
+
+    @property
+    def start(self) -> tuple[float, float]:
+        return self.points[0]
+
+    @property
+    def end(self) -> tuple[float, float]:
+        return self.points[-1]
 
     def where(self, now: float) -> tuple[float, float, float]:
         """(x, y, heading) at simulation time `now`."""
-        dx, dy = self.end[0] - self.start[0], self.end[1] - self.start[1]
-        length = math.hypot(dx, dy)
+        xy = np.asarray(self.points, dtype=float)
+        legs = np.hypot(*np.diff(xy, axis=0).T)
+        length = float(legs.sum())
         if length == 0 or self.speed <= 0:
-            return (*self.start, 0.0)
-        walked = (self.speed * max(0.0, now - self.since)) % (2 * length)
-        back = walked > length
-        share = (2 * length - walked if back else walked) / length
-        heading = math.atan2(-dy, -dx) if back else math.atan2(dy, dx)
-        return self.start[0] + share * dx, self.start[1] + share * dy, heading
+            return (*self.points[0], 0.0)
+        one_way = length / self.speed + self.pause
+        t = max(0.0, now - self.since) % (2 * one_way)
+        back = t >= one_way
+        walked = min(length, self.speed * (t - one_way if back else t))
+        distance = length - walked if back else walked
+        leg = min(int(np.searchsorted(np.cumsum(legs), distance, side="right")), len(legs) - 1)
+        along = distance - float(np.sum(legs[:leg]))
+        (x0, y0), (x1, y1) = xy[leg], xy[leg + 1]
+        share = along / legs[leg] if legs[leg] > 0 else 0.0
+        heading = math.atan2(y1 - y0, x1 - x0) + (math.pi if back else 0.0)
+        return float(x0 + share * (x1 - x0)), float(y0 + share * (y1 - y0)), math.atan2(math.sin(heading),
+                                                                                    math.cos(heading))
+
+    def record(self) -> dict:
+        return {"from": list(self.start), "to": list(self.end), "via": [list(p) for p in self.points[1:-1]],
+                "speed_m_s": self.speed, "pause_s": self.pause}
 
 
 class SimulatedTestbed:
@@ -252,7 +273,7 @@ class SimulatedTestbed:
         walk = self.walk
         for record in records:
             if walk is not None and record["id"] == self.astronaut_id:
-                record["walk"] = {"from": list(walk.start), "to": list(walk.end), "speed_m_s": walk.speed}
+                record["walk"] = walk.record()
         return records
 
     def drop_rock(self, x: float, y: float, height: float, diameter: float, seed: int | None = None) -> dict:
@@ -271,10 +292,11 @@ class SimulatedTestbed:
         return self.world.clear_obstacles("rock")
 
     def place_astronaut(self, x: float, y: float, to: tuple[float, float] | None = None,
-                        speed: float = 0.5) -> dict:
+                        speed: float = 0.5, then: tuple[float, float] | None = None, pause: float = 0.0) -> dict:
         """Stand the one astronaut at (x, y) (moving it if it is there), or, with `to`, start it walking
-        from (x, y) to `to` and back at `speed` (m/s of simulation time). A standing astronaut may not
-        be put on the rover; a walking one walks where it walks (both ends must lie in the world)."""
+        from (x, y) to `to` (and on to `then`, turning there) and back at `speed` (m/s of simulation
+        time), standing `pause` seconds at each end. A standing astronaut may not be put on the rover;
+        a walking one walks where it walks (every corner of its walk must lie in the world)."""
         with self._obstacles_lock:
             world = self.world
             clear = self.rover.footprint() if to is None else None
@@ -285,8 +307,9 @@ class SimulatedTestbed:
             else:
                 placed = False
             try:
-                if to is not None:
-                    world.move_obstacle(self.astronaut_id, *to, heading)   # refused if the far end is off the world
+                for corner in (to, then):
+                    if corner is not None:                              # refused if a corner is off the world
+                        world.move_obstacle(self.astronaut_id, *corner, heading)
                 world.move_obstacle(self.astronaut_id, x, y, heading, keep_clear=clear)
             except ValueError:
                 if placed:
@@ -295,7 +318,8 @@ class SimulatedTestbed:
                 elif self.walk is not None:
                     self._step(self.walk)
                 raise
-            self.walk = None if to is None else Walk((x, y), tuple(to), speed, self.clock.now())
+            corners = ((x, y),) + tuple(tuple(c) for c in (to, then) if c is not None)
+            self.walk = None if to is None else Walk(corners, speed, self.clock.now(), pause)
             return self._record(self.astronaut_id)
 
     def update_obstacles(self) -> None:
@@ -313,6 +337,40 @@ class SimulatedTestbed:
         record = self._record(self.astronaut_id)
         if math.hypot(x - record["x"], y - record["y"]) >= WALK_STEP_M or heading != record["heading_rad"]:
             self.world.move_obstacle(self.astronaut_id, x, y, heading)
+
+    def person_truth(self, sensor: str, half_fov_deg: tuple[float, float], max_range_m: float,
+                     at_s: float | None = None) -> dict | None:
+        """Where the astronaut truly stands at clock time `at_s` (default now; a frame's truth is
+        where the person was in the middle of its exposure): x, y, its ground z, heading, and how much of it the
+        sensor sees: the share of points along its body axis (0.1 to 1.7 of its height) inside the
+        sensor's field of view and range whose ray meets the person before anything else (a rock
+        between hides it). None without an astronaut."""
+        with self._obstacles_lock:
+            if self.walk is not None:
+                self._step(self.walk)
+            if self.astronaut_id is None:
+                return None
+            record = self._record(self.astronaut_id)
+            if self.walk is not None and at_s is not None:
+                record["x"], record["y"], record["heading_rad"] = self.walk.where(at_s)
+        x, y, height = record["x"], record["y"], record["height_m"]
+        ground = float(self.world.ground_height_at(x, y))
+        camera = self.sensor_pose(sensor)
+        axis = np.column_stack([np.full(17, x), np.full(17, y), ground + height * np.linspace(0.1, 0.9, 17)])
+        origin = camera[:3, 3]
+        towards = axis - origin
+        distance = np.linalg.norm(towards, axis=1)
+        in_camera = towards @ camera[:3, :3]          # camera axes: x right, y down, z forward
+        tan_x, tan_y = np.tan(np.radians(half_fov_deg))
+        in_view = ((in_camera[:, 2] > 0) & (np.abs(in_camera[:, 0]) <= tan_x * in_camera[:, 2])
+                   & (np.abs(in_camera[:, 1]) <= tan_y * in_camera[:, 2]) & (distance <= max_range_m))
+        rays = np.column_stack([np.repeat(origin[None], len(axis), axis=0), towards / distance[:, None]])
+        hit, _ = self.world.surface.cast(rays.astype(np.float32))
+        reach = math.hypot(record.get("width_m", 0.5), record.get("depth_m", 0.3)) / 2 + 0.05
+        unblocked = hit >= distance - reach             # the first hit is the person's own near side
+        return {"id": record["id"], "x": x, "y": y, "z": ground, "heading_rad": record["heading_rad"],
+                "height_m": height, "visible": float(np.mean(in_view & unblocked)),
+                "range_m": float(math.hypot(x - origin[0], y - origin[1]))}
 
     def _record(self, obstacle_id: int) -> dict:
         return next(o for o in self.world.obstacles() if o["id"] == obstacle_id)

@@ -21,7 +21,8 @@ import copy
 import math
 import threading
 from pathlib import Path
-from typing import NamedTuple
+from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -29,7 +30,7 @@ from . import albedo as albedo_model
 from .config import Sun, WorldConfig
 from .grid import GridSpec, bilinear, remap_bilinear
 from .lighting import in_sunlight
-from .mesh import TriangleSurface, grid_surface_parts
+from .mesh import Stacked, TriangleSurface, grid_surface_parts
 from .noise import DetailTexture
 from .obstacles import Obstacle, astronaut_obstacle, inside_convex, rock_obstacle
 from .rocks import ROCK_REACH, ROCK_TABLE_DTYPE, RockMeshes, place_rocks, rock_table
@@ -38,14 +39,27 @@ from .terrain import ground_heights
 
 __all__ = ["World", "WorldConfig", "Sun"]
 
-class _Truth(NamedTuple):
+@dataclass(frozen=True)
+class _Truth:
     """What the world is at one instant; replaced whole, never changed in place."""
 
     surface: TriangleSurface
     rock_of_triangle: np.ndarray
     rocks: np.ndarray
-    heights: np.ndarray
+    built_heights: np.ndarray          # the built world's, before any added obstacle
     obstacles: tuple[Obstacle, ...]
+
+    @cached_property
+    def heights(self) -> np.ndarray:
+        """The built heights with the added obstacles' patches, made when first asked for (a walking
+        person makes a new state every frame; most are only rendered, never asked for heights)."""
+        if not self.obstacles:
+            return self.built_heights
+        heights = self.built_heights.copy()
+        flat = heights.reshape(-1)
+        for obstacle in self.obstacles:
+            flat[obstacle.points] = np.maximum(flat[obstacle.points], obstacle.tops)
+        return heights
 
 
 MESH_BLOCK_CELLS = 256       # RTIN root block: the largest triangle leg, 2.56 m at 1 cm cells
@@ -228,18 +242,14 @@ class World:
         if not obstacles:
             self._state = built
             return
-        heights = built.heights.copy()
-        flat = heights.reshape(-1)
         offsets = np.cumsum([0] + [len(o.vertices) for o in obstacles[:-1]])
-        for obstacle in obstacles:
-            flat[obstacle.points] = np.maximum(flat[obstacle.points], obstacle.tops)
         first = len(built.rocks)
         surface = built.surface.with_dynamic(np.concatenate([o.vertices for o in obstacles]),
                                              np.concatenate([o.triangles + k for o, k in zip(obstacles, offsets)]))
-        rock_of_triangle = np.concatenate([built.rock_of_triangle] + [np.full(len(o.triangles), first + i, np.int32)
-                                                                      for i, o in enumerate(obstacles)])
+        rock_of_triangle = Stacked(built.rock_of_triangle, np.concatenate(
+            [np.full(len(o.triangles), first + i, np.int32) for i, o in enumerate(obstacles)]))
         rocks = np.concatenate([built.rocks, np.array([o.row for o in obstacles], dtype=ROCK_TABLE_DTYPE)])
-        self._state = _Truth(surface, rock_of_triangle, rocks, heights, obstacles)
+        self._state = _Truth(surface, rock_of_triangle, rocks, built.heights, obstacles)
 
     # ----------------------------------------------------------------------------- building
     @classmethod

@@ -10,12 +10,18 @@ here, once, instead of in every command:
 - An activity borrows devices for one frame, never waiting: while a job holds any of them the
   borrow is refused and the activity reports that frame as unknown. A job is never delayed by more
   than one frame and never fails because an activity runs.
+- An activity that steers a device all along (tracking keeps the PTU on its target) claims it: a job
+  that starts after the claim and asks for it is `409 busy` naming the activity (the dispatcher
+  refuses a job that declares the device before it starts). A job already running when the claim
+  was made keeps what it had: the activity's frames wait for it as unknown frames.
 """
 from __future__ import annotations
 
 import threading
 from contextlib import contextmanager
 from typing import Iterator
+
+from rvs_server.protocol import Busy
 
 
 class DeviceSharing:
@@ -24,12 +30,17 @@ class DeviceSharing:
         self._held: set[str] = set()       # held by the job
         self._borrowed: set[str] = set()   # borrowed by an activity for its frame in progress
         self._job_thread = threading.local()
+        self._jobs = 0                             # jobs begun so far
+        self._claims: dict[str, tuple[str, int]] = {}   # device -> (activity, jobs begun before the claim)
 
     # -- the job's side --------------------------------------------------------------------------
     @contextmanager
     def job_running(self) -> Iterator[None]:
         """Marks the calling thread as the job's for the handler's run; everything it held is given
         back when it ends, however it ends."""
+        with self._changed:
+            self._jobs += 1
+            self._job_thread.serial = self._jobs
         self._job_thread.active = True
         try:
             yield
@@ -46,6 +57,9 @@ class DeviceSharing:
         if not self.in_job():
             return
         with self._changed:
+            claim = self._claims.get(name)
+            if claim is not None and self._job_thread.serial > claim[1] and name not in self._held:
+                raise Busy(self.claim_sentence(name))
             self._changed.wait_for(lambda: name not in self._borrowed)
             self._held.add(name)
 
@@ -61,6 +75,27 @@ class DeviceSharing:
     def held(self) -> set[str]:
         with self._changed:
             return set(self._held)
+
+    # -- claims: a device an activity steers all along -----------------------------------------------
+    def claim(self, name: str, activity: str) -> None:
+        with self._changed:
+            self._claims[name] = (activity, self._jobs)
+
+    def unclaim(self, name: str, activity: str) -> None:
+        with self._changed:
+            if self._claims.get(name, ("",))[0] == activity:
+                del self._claims[name]
+
+    def claimed_by(self, name: str) -> str | None:
+        with self._changed:
+            claim = self._claims.get(name)
+            return claim[0] if claim else None
+
+    def claim_sentence(self, name: str) -> str:
+        activity = self.claimed_by(name) or "an activity"
+        from rvs_server.activities import COMMANDS   # here: the activities module imports the devices' users
+        stop = COMMANDS.get(activity, ("", f"{activity}-stop"))[1]
+        return f"the {name} is steered by the {activity} activity; {stop} first"
 
     # -- an activity's side -----------------------------------------------------------------------
     @contextmanager

@@ -61,6 +61,37 @@ class TofDevice(SensorDevice):
         else:
             self.health, self.last_error = "ok", ""
 
+    # -- an activity's own settings -------------------------------------------------------------
+    # Tracking frames want the camera otherwise than mapping (10 m range, a shorter exposure for the
+    # frame rate). Switching there and back on every frame costs a frame's worth of register writes,
+    # so an activity leaves its settings in force between its frames, and the device gives the job
+    # its own back the moment a job takes the camera (require) or the activity ends (restore).
+    _own_settings: Any = None
+
+    def use_settings(self, wanted: Any) -> None:
+        """An activity's settings, in force from now on until a job takes the camera (call it inside a
+        borrow)."""
+        camera = self.ready_driver()
+        if self._own_settings is None:
+            self._own_settings = camera.settings()
+        camera.apply(wanted)
+
+    def own_settings(self) -> Any:
+        """The camera's own settings (those a job gets), whatever an activity left in force."""
+        return self._own_settings if self._own_settings is not None else self.ready_driver().settings()
+
+    def restore_settings(self) -> None:
+        """The camera's own settings back, if an activity left its own in force."""
+        own, self._own_settings = self._own_settings, None
+        if own is not None and self.driver is not None:
+            self.driver.apply(own)
+
+    def require(self) -> Any:
+        camera = super().require()
+        if self._own_settings is not None:
+            self.restore_settings()
+        return camera
+
     def grab(self, frames: int = 1, min_confidence: int = 0, settle_frames: int = 10, camera: Any = None) -> Any:
         """Frames averaged per pixel once auto exposure settled (drivers.sr4000.grab's GrabResult);
         from `camera` when an activity borrowed it, else from the job's."""

@@ -36,3 +36,9 @@ class GroundTruth:
                       y_range: tuple[float, float]) -> np.ndarray:
         """True where a rock stands more than `step` metres above the ground."""
         return self._testbed.world.obstacle_mask(step, cell, x_range, y_range)
+
+    def person(self, sensor: str, half_fov_deg: tuple[float, float], max_range_m: float,
+               at_s: float | None = None) -> dict[str, Any] | None:
+        """The astronaut's true place at clock time `at_s` (default now) and the share of it `sensor`
+        sees now (None: no astronaut)."""
+        return self._testbed.person_truth(sensor, half_fov_deg, max_range_m, at_s)

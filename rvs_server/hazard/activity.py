@@ -20,12 +20,11 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from rvs_server.activities import Activity
-from toolbox.colour import grey
-from toolbox.geometry import RoverPose, camera_to_world, relative_pose
+from rvs_server.devices.frame_points import SENSOR_DEVICE, FramePoints, FrameSettings
+from toolbox.geometry import RoverPose
 from toolbox.mapping import dem as dem_tools
 from toolbox.mapping.corridor import CorridorParams, CorridorView, HazardMemory, Hit, corridor_view
 from toolbox.mapping.hazard import HazardConfig
-from toolbox.mapping.stereo import SgbmConfig, StereoCalibration, rectification, stereo_points
 
 from .guard import HazardGuard, causes
 from .record import FrameRecord, write_product
@@ -35,7 +34,6 @@ if TYPE_CHECKING:
 
     from .commands import HazardSettings
 
-SENSOR_DEVICE = {"tof": "tof", "stereo": "cameras"}
 
 
 @dataclass(frozen=True)
@@ -63,8 +61,6 @@ class HazardActivity(Activity):
             hazard=HazardConfig(slope_limit_deg=mapping.slope_limit_deg, step_limit=mapping.step_limit,
                                 roughness_limit=mapping.roughness_limit,
                                 step_min_cells=mapping.tof_step_min_cells if sensor == "tof" else 5))
-        self.min_confidence, self.max_range_m = mapping.min_confidence, mapping.max_range_m
-        self.mounts = calibration.mounts
         self.tilt_deg = settings.tof_tilt_deg if sensor == "tof" else settings.stereo_tilt_deg
         self.memory = HazardMemory(self.params)
         self._memory_lock = threading.Lock()
@@ -73,7 +69,9 @@ class HazardActivity(Activity):
         self.records: list[FrameRecord] = []
         self.views: list[CorridorView] = []    # the last frames', for the picture
         self.guard = HazardGuard(self)
-        self._rectified: tuple | None = None   # stereo: rectification and intrinsics, made once
+        self.frames_of = FramePoints(server, FrameSettings(
+            sensor, mapping.max_range_m if sensor == "tof" else settings.stereo_max_range_m,
+            settings.stereo_resolution, settings.stereo_disparities))
 
     # -- what the guard asks -----------------------------------------------------------------------
     def nearest(self, pose: tuple[float, float, float], direction: int, max_distance: float) -> Hit | None:
@@ -108,10 +106,10 @@ class HazardActivity(Activity):
             pose = replace(devices.rover.pose_estimate, roll=roll, pitch=pitch)
             truth = devices.rover.true_pose()
             sim_s = self.server.clock.now()
-            to_points = self._grab(devices, pose, pan, tilt)
+            frame = self.frames_of.grab(devices)
             taken = time.perf_counter()
         # The devices are given back before any processing: a job waits for the grab, never for this.
-        points_camera, valid, camera_pose = to_points()
+        points_camera, valid, camera_pose = self.frames_of.points(frame, pose, pan, tilt)
         points = dem_tools.view_points(points_camera, valid, camera_pose)
         view = corridor_view(points, (pose.x, pose.y, pose.heading), self.params, 1)
         direction = self.guard.direction
@@ -144,43 +142,6 @@ class HazardActivity(Activity):
             position = devices.ptu.read_position()
         return position
 
-    def _grab(self, devices: Any, pose: RoverPose, pan: float, tilt: float):
-        """Take one frame; gives the function that turns it into points in the camera frame, the
-        pixels to trust and the camera's pose (run once the devices are given back)."""
-        pan_rad, tilt_rad = math.radians(pan), math.radians(tilt)
-        if self.sensor == "tof":
-            tof = devices.tof
-            result = tof.grab(frames=1, min_confidence=self.min_confidence, settle_frames=0,
-                              camera=tof.ready_driver())
-
-            def tof_points():
-                points = result.frame.xyz()
-                valid = result.defined & (np.linalg.norm(np.nan_to_num(points, nan=np.inf), axis=-1)
-                                          <= self.max_range_m)
-                return points, valid, camera_to_world(pose, self.mounts["tof"], pan_rad, tilt_rad)
-            return tof_points
-        pair = devices.cameras.ready_driver()
-        frames = _binned_grab(pair, self.settings.stereo_resolution, devices.cameras.grab_timeout_s)
-        left_pose = camera_to_world(pose, self.mounts["left"], pan_rad, tilt_rad)
-        right_pose = camera_to_world(pose, self.mounts["right"], pan_rad, tilt_rad)
-        rect, config = self._rectification(pair, left_pose, right_pose)
-
-        def stereo_frame_points():
-            left, right = (grey(frames[role].image) for role in ("left", "right"))
-            points, valid = stereo_points(left, right, rect, config)
-            return points, valid & (points[..., 2] < self.settings.stereo_max_range_m), left_pose
-        return stereo_frame_points
-
-    def _rectification(self, pair: Any, left_pose: np.ndarray, right_pose: np.ndarray):
-        """The pair's rectification in the hazard frames' binned mode: the mounts do not move, so once."""
-        if self._rectified is None:
-            mode = self.settings.stereo_resolution
-            left, right = (pair.camera(role).intrinsics(mode) for role in ("left", "right"))
-            rect = rectification(StereoCalibration(left, right, relative_pose(left_pose, right_pose)))
-            config = SgbmConfig(num_disparities=self.settings.stereo_disparities, block_size=5)
-            self._rectified = (rect, config)
-        return self._rectified
-
     # -- the end -------------------------------------------------------------------------------------
     def finish(self) -> dict[str, Any]:
         rover = self.server.devices.rover
@@ -196,21 +157,5 @@ class HazardActivity(Activity):
                 "hazards": hazards, "stops": len(self.guard.stops),
                 "latency_ms": f"{np.percentile(measured, 95):.1f}" if measured else "none",
                 "product": self.product.name, "path": str(self.product.path)}
-
-
-
-
-def _binned_grab(pair: Any, mode: str, timeout_s: float) -> dict:
-    """One triggered pair in the binned resolution mode `mode` (fewer pixels to read out, match and,
-    simulated, render), the cameras' own mode given back afterwards for the job's next images."""
-    own = pair.settings
-    if own.resolution == mode:
-        return pair.grab("both", timeout_s=timeout_s)
-    pair.apply(own.with_changes(resolution=mode))
-    try:
-        return pair.grab("both", timeout_s=timeout_s)
-    finally:
-        pair.apply(own)
-
 
 __all__ = ["HazardActivity", "causes"]

@@ -143,7 +143,11 @@ class AstronautConfig(CommandConfig):
     at: Point | None = Field(None, description="where the person stands (or starts walking), X,Y in the world "
                              "frame, metres")
     to: Point | None = Field(None, description="walk from --at to X,Y and back, over and over")
+    then: Point | None = Field(None, description="with --to: walk on from there to X,Y (a turn), then back the "
+                               "same way")
     speed: float = Field(0.5, gt=0, le=3.0, description="walking speed, metres per second of simulation time")
+    pause: float = Field(0.0, ge=0, le=600, description="with --to: seconds it stands still at each end of its "
+                         "walk before it turns back")
     remove: bool = Field(False, description="take the person away")
 
 
@@ -154,6 +158,9 @@ def _validate_astronaut(server: Host, cfg: AstronautConfig) -> None:
             raise BadRequest("astronaut: --remove takes no --at or --to (astronaut --at X,Y puts one back)")
     elif cfg.at is None:
         raise BadRequest("astronaut: give --at X,Y (and --to X,Y [--speed M_PER_S] to walk), or --remove")
+    elif cfg.to is None and (cfg.then is not None or cfg.pause):
+        raise BadRequest(f"astronaut: --then and --pause shape a walk; give --to X,Y as well "
+                         f"(given: {'--then' if cfg.then is not None else '--pause'})")
 
 
 @module.immediate("astronaut", AstronautConfig, validate=_validate_astronaut)
@@ -167,20 +174,25 @@ def astronaut(call: Call, cfg: AstronautConfig):
             testbed.remove_obstacle(gone)
             return {"removed": gone}
         try:
-            record = testbed.place_astronaut(*cfg.at, to=cfg.to, speed=cfg.speed)
+            record = testbed.place_astronaut(*cfg.at, to=cfg.to, speed=cfg.speed, then=cfg.then, pause=cfg.pause)
         except ValueError as exc:
             raise BadRequest(f"astronaut: {exc}") from None
         reply = {"astronaut": record["id"], "x": _f(record["x"]), "y": _f(record["y"]),
                  "height": _f(record["height_m"])}
         if cfg.to is not None:
             reply.update(to=f"{_f(cfg.to[0])},{_f(cfg.to[1])}", speed=_f(cfg.speed))
+            if cfg.then is not None:
+                reply["then"] = f"{_f(cfg.then[0])},{_f(cfg.then[1])}"
+            if cfg.pause:
+                reply["pause"] = f"{cfg.pause:g}"
         return reply
     return _on_world(call, work)
 
 
 class SimRockConfig(CommandConfig):
     at: Point | None = Field(None, description="where the rock falls, X,Y in the world frame, metres")
-    height: float = Field(0.2, ge=0.02, le=1.0, description="how far it stands above the ground, metres")
+    height: float = Field(0.2, ge=0.02, le=2.5, description="how far it stands above the ground, metres "
+                          "(up to 2.5: standing boulders of a person's height)")
     diameter: float | None = Field(None, ge=0.05, le=2.0, description="across its body, metres; default 1.5 x "
                                    "height (at least 0.05)")
     seed: int | None = Field(None, ge=0, le=2**31 - 1, description="its shape and albedo; default its id")

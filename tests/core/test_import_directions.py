@@ -12,7 +12,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[2]
 PACKAGES = ("rvs_server", "toolbox", "drivers", "clients")
 CAPABILITIES = ("system", "ptu", "imaging", "mapping", "navigation", "hopping", "routes", "hazard", "orientation",
-                "simulation")
+                "tracking", "simulation")
 # A capability reaches another only through these modules (its named interface).
 INTERFACES = {
     ("navigation", "mapping"): {"rvs_server.mapping"},

@@ -109,8 +109,16 @@ def test_an_astronaut_stands_upright_on_the_ground(world):
     assert float(world.protrusion_at(x, y)) == pytest.approx(1.8, abs=1e-6)
     footprint = np.array(record["footprint"])
     sides = np.linalg.norm(np.diff(np.vstack([footprint, footprint[:1]]), axis=0), axis=1)
-    assert sorted(np.round(sides, 6)) == [0.3, 0.3, 0.5, 0.5]
-    assert world.rocks[record["rock"]]["area"] == pytest.approx(0.15, rel=0.1)
+    assert sorted(np.round(sides, 6)) == [0.41, 0.41, 0.5, 0.5]      # across the arms; torso and backpack
+    assert world.rocks[record["rock"]]["area"] == pytest.approx(0.155, rel=0.1)
+    # legs apart: a ray at knee height along the heading passes between them; at the chest it stops
+    ground = float(world.ground_height_at(x, y))
+    along = np.array([np.cos(0.4), np.sin(0.4), 0.0])
+    for height, through in ((0.3, True), (1.1, False)):
+        start = np.array([x, y, ground + height]) - 2 * along
+        t_hit, ids = world.surface.cast(np.concatenate([start, along])[None].astype(np.float32))
+        hit_person = np.isfinite(t_hit[0]) and t_hit[0] < 2.5 and ids[0] >= world.surface.static_triangles
+        assert hit_person != through, height
     assert Rover(world, x=x, y=y - 0.3).collides(0.3)
     view = render(world, pose, CAMERA)
     on_person = view.rock == record["rock"]

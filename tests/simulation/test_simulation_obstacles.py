@@ -39,7 +39,7 @@ def test_sim_rock_drops_removes_and_clears_rocks_the_camera_sees(server):
                                    "(dropped rocks: 1, 2)",
             "sim-rock --at 0.1,0": "would land on the rover",
             "sim-rock --at 6.2,0 --height 0.5": "its bounds are x -",
-            "sim-rock --at 1,1 --height 1.5": "--height = '1.5'",
+            "sim-rock --at 1,1 --height 2.6": "--height = '2.6'",
             "sim-rock --at 1,1 --diameter 0.01": "--diameter = '0.01'",
             "sim-rock --at 1": "--at",
             "sim-rock": "give one of --at X,Y",
@@ -71,7 +71,7 @@ def test_astronaut_stands_moves_walks_and_goes(server):
         assert (walking["to"], walking["speed"]) == ("2.000,2.000", "1.000")
         first, _ = grab_tof(c, server, "walk1")
         [walker] = first["obstacles"]
-        assert walker["walk"] == {"from": [2.0, -2.0], "to": [2.0, 2.0], "speed_m_s": 1.0}
+        assert walker["walk"] == {"from": [2.0, -2.0], "to": [2.0, 2.0], "via": [], "speed_m_s": 1.0, "pause_s": 0.0}
         assert walker["x"] == 2.0 and -2.0 <= walker["y"] <= 2.0
         second, _ = grab_tof(c, server, "walk2")   # later on the simulation clock: elsewhere on the walk
         assert second["time_s"] > first["time_s"] and second["obstacles"][0]["y"] != walker["y"]

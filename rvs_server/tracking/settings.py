@@ -1,0 +1,78 @@
+"""configs/tracking.toml: how track3d-detect searches and track3d-start follows."""
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+from pydantic import Field
+
+from rvs_server.config import PerSensor, Range, Settings
+from toolbox.tracking.kalman import TrackParams
+from toolbox.tracking.standing import StandingParams
+
+Sensor = Literal["tof", "stereo"]
+Tilt = Annotated[float, Field(ge=-60, le=30)]
+Positive = Annotated[float, Field(gt=0)]
+
+
+class TrackingSettings(Settings):
+    sensor: Sensor = Field("tof", description="the sensor that searches and tracks unless --sensor says")
+    rate_hz: float = Field(10.0, gt=0, le=30, description="track3d-start: frames per second")
+    # -- the search ---------------------------------------------------------------------------
+    pan_deg: Range = Field((-150.0, 150.0), description="track3d-detect sweeps the pan over this unless --pan "
+                           "says (degrees, positive right)")
+    search_tilt_deg: PerSensor[Tilt] = Field(PerSensor[Tilt](tof=-4.0, stereo=-6.0), description="per sensor, the "
+                                             "tilt while searching: a person's head in view from about 2.3 m")
+    ground_tilt_deg: PerSensor[Tilt] = Field(PerSensor[Tilt](tof=-22.0, stereo=-24.0), description="per sensor, the "
+                                             "search's second tilt per pan: the ground at a near person's feet")
+    search_step_deg: PerSensor[Positive] = Field(PerSensor[Positive](tof=30.0, stereo=45.0), description="per "
+                                                 "sensor, pan between the search's views (the SR4000 sees 37 "
+                                                 "degrees across, the cameras 61)")
+    found_confidence: float = Field(0.6, gt=0, le=1, description="a candidate this person-like is a person")
+    walk_speed_m_s: float = Field(1.5, gt=0, le=5, description="how fast a person may walk: the search takes "
+                                  "two sightings no farther apart than this covers between their views as one")
+    # -- the sensors --------------------------------------------------------------------------
+    max_range_m: float = Field(9.5, gt=0, le=30, description="points farther from the sensor are dropped")
+    tof_max_distance_m: float = Field(10.0, gt=0, le=10, description="the SR4000's modulation for tracking: "
+                                      "10 m (15 MHz) where mapping uses 5 m (30 MHz); given back after each frame")
+    tof_max_integration: int = Field(60, ge=1, le=255, description="the SR4000's auto exposure may reach this "
+                                     "register while tracking (6.3 ms: four exposures make a frame, so 10 Hz needs "
+                                     "short ones); the camera's own given back when a job takes it")
+    tof_min_confidence: int = Field(4096, ge=0, le=65535, description="SR4000 pixels below this confidence are "
+                                    "dropped (mapping's 16384 drops the ground a person stands on at 10 m range)")
+    stereo_resolution: Literal["low", "medium", "high", "highest"] = Field(
+        "low", description="the cameras' mode for tracking frames (low: 4 x 4 binning), given back after each")
+    stereo_disparities: int = Field(64, ge=16, le=256, multiple_of=16)
+    tof_sigma_m: float = Field(0.04, gt=0, description="1 sigma of one TOF frame's centre, per axis")
+    stereo_sigma_m: float = Field(0.04, gt=0, description="1 sigma of one stereo frame's centre at 1 m ...")
+    stereo_sigma_per_m2: float = Field(0.003, ge=0, description="... plus this times the range squared")
+    # -- following ----------------------------------------------------------------------------
+    track_confidence: float = Field(0.3, ge=0, le=1, description="a cluster in the gate this person-like is the "
+                                    "target (lower than found_confidence: a rock may hide its legs)")
+    reacquire_confidence: float = Field(0.6, gt=0, le=1, description="once lost, a person this person-like "
+                                        "anywhere in view is the target again")
+    acceleration_density: float = Field(0.5, gt=0, description="the filter's white acceleration, (m/s^2)^2 s "
+                                        "(0.5: a walker stops or turns within a second or two)")
+    max_coast_s: float = Field(4.0, gt=0, le=60, description="unseen this long (simulated seconds): lost")
+    acquire_s: float = Field(2.0, gt=0, le=60, description="track3d-start looks this long where the search saw "
+                             "the target (state lost until it sees it) before it sweeps for it")
+    min_gate_m: float = Field(0.4, ge=0, le=5, description="the gate is never narrower than this")
+    aim_height_m: float = Field(0.9, ge=0, le=2.5, description="the PTU points at this height above the "
+                                "target's feet")
+    deadband_deg: float = Field(1.5, ge=0, le=10, description="the PTU moves only when the aim is off by more")
+    max_ptu_speed_deg_s: float = Field(60.0, gt=0, le=300, description="the fastest the PTU is asked to turn")
+    tilt_limits_deg: Range = Field((-40.0, 20.0), description="the tilt the tracker may ask for")
+    lost_sweep_pan_deg: Range = Field((-90.0, 90.0), description="lost: the PTU sweeps the pan between these "
+                                      "(at the search tilt) until a person is in view again")
+    lost_sweep_speed_deg_s: float = Field(30.0, gt=0, le=300, description="the lost sweep's pan speed (a TOF "
+                                          "frame at 10 Hz then spans 3 degrees, well inside its 37-degree view)")
+
+    def standing(self) -> StandingParams:
+        return StandingParams()
+
+    def track(self) -> TrackParams:
+        return TrackParams(q=self.acceleration_density, max_coast_s=self.max_coast_s, min_gate_m=self.min_gate_m)
+
+    def sigma_m(self, sensor: str, range_m: float) -> float:
+        if sensor == "tof":
+            return self.tof_sigma_m
+        return self.stereo_sigma_m + self.stereo_sigma_per_m2 * range_m ** 2

@@ -1,0 +1,85 @@
+"""The tracking toolbox on synthetic clouds and measurements: a person's shape against a boulder's,
+the centre from the legs, the constant-velocity filter's convergence, its gate and its coasting."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from toolbox.tracking.detect import candidates
+from toolbox.tracking.kalman import Track, TrackParams
+from toolbox.tracking.standing import Plane
+
+
+def box_surface(rng, centre, across, along, bottom, top, count):
+    """Points on the near (x-facing: the sensor is at the origin, the body along +x) face and sides
+    of an upright box: what a range sensor would see of it."""
+    x0, y0 = centre
+    side = rng.uniform(-across / 2, across / 2, count)
+    z = rng.uniform(bottom, top, count)
+    return np.column_stack([np.full(count, x0 - along / 2), y0 + side, z])
+
+
+def ground(rng, around, half=2.5, step=0.05):
+    g = np.arange(-half, half, step)
+    gx, gy = np.meshgrid(g + around[0], g + around[1])
+    return np.column_stack([gx.ravel(), gy.ravel(), rng.normal(0, 0.005, gx.size)])
+
+
+def figure(rng, centre=(5.0, 0.0)):
+    """A person facing the sensor: two legs apart, a torso with arms, a helmet."""
+    x, y = centre
+    parts = [box_surface(rng, (x, y + 0.1), 0.15, 0.2, 0.0, 0.86, 600),
+             box_surface(rng, (x, y - 0.1), 0.15, 0.2, 0.0, 0.86, 600),
+             box_surface(rng, (x, y), 0.50, 0.26, 0.83, 1.44, 1500),
+             box_surface(rng, (x, y), 0.26, 0.28, 1.44, 1.80, 500)]
+    return np.concatenate(parts)
+
+
+def boulder(rng, centre=(5.0, 0.0), height=1.8, diameter=0.7):
+    """A standing boulder: widest at its foot, narrowing to a rounded top."""
+    z = rng.uniform(0, height, 5000)
+    half = diameter / 2 * np.sqrt(np.clip(1 - (z / height) ** 4, 0, 1))
+    side = rng.uniform(-1, 1, len(z)) * half
+    return np.column_stack([centre[0] - diameter / 2 + 0.0 * z, centre[1] + side, z])
+
+
+@pytest.fixture
+def rng():
+    return np.random.default_rng(7)
+
+
+def test_a_suited_figure_is_a_person_and_a_boulder_of_its_height_is_not(rng):
+    plane = Plane(0.0, 0.0, 0.0, 0.0, 0.0)
+    person = candidates(np.concatenate([ground(rng, (5, 0)), figure(rng)]), np.zeros(2), plane)
+    assert person and person[0].confidence > 0.9, [c.terms for c in person]
+    assert 1.75 < person[0].shape.height < 1.85
+    # the centre from the legs: where it stands, not the middle of its visible face
+    assert math.dist(person[0].xy, (5.0, 0.0)) < 0.06, person[0].xy
+    rock = candidates(np.concatenate([ground(rng, (5, 0)), boulder(rng)]), np.zeros(2), plane)
+    assert rock and rock[0].confidence == 0.0 and rock[0].terms["legs_to_torso"] == 0.0, [c.terms for c in rock]
+    pebble = candidates(np.concatenate([ground(rng, (5, 0)), boulder(rng, height=0.5, diameter=0.5)]),
+                        np.zeros(2), plane)
+    assert all(c.terms["height"] == 0.0 for c in pebble)          # too low to be anyone standing
+
+
+def test_the_filter_follows_a_walker_and_its_gate_keeps_a_boulder_out(rng):
+    sigma = 0.03
+    truth = lambda t: np.array([5.0, -2.0 + 0.8 * t])           # noqa: E731  (0.8 m/s along y)
+    track = Track.start(truth(0) + rng.normal(0, sigma, 2), np.eye(2) * sigma ** 2, 0.0, TrackParams(q=0.5))
+    for k in range(1, 41):
+        t = k * 0.1
+        track.predict(t)
+        track.update(truth(t) + rng.normal(0, sigma, 2), np.eye(2) * sigma ** 2)
+    assert np.linalg.norm(track.position - truth(4.0)) < 0.03
+    assert track.velocity == pytest.approx([0.0, 0.8], abs=0.08)
+    track.predict(4.1)
+    assert not track.in_gate(truth(4.1) + [0.0, 1.2], np.eye(2) * sigma ** 2)    # a boulder 1.2 m on
+    assert track.in_gate(truth(4.1) + [0.02, -0.02], np.eye(2) * sigma ** 2)
+    # hidden: it coasts on its velocity, its gate growing, and is lost after max_coast_s
+    for k in range(1, 30):
+        track.predict(4.1 + k * 0.1)
+    assert np.linalg.norm(track.position - truth(7.0)) < 0.3 and not track.lost
+    track.predict(8.2)
+    assert track.lost

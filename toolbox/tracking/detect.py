@@ -1,0 +1,39 @@
+"""The person candidates in one cloud: what stands on the ground, each judged by its shape."""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .person import PersonModel, Shape, person_confidence, shape_of
+from .standing import Plane, StandingParams, ground_of, standing_clusters
+
+
+@dataclass(frozen=True)
+class Candidate:
+    shape: Shape
+    confidence: float
+    terms: dict[str, float]      # each membership the confidence is made of
+    points: np.ndarray           # the cluster's points (N, 3, world), for pictures
+
+    @property
+    def xy(self) -> np.ndarray:
+        return np.array([self.shape.x, self.shape.y])
+
+    def range_from(self, xy: np.ndarray) -> float:
+        return float(math.hypot(self.shape.x - xy[0], self.shape.y - xy[1]))
+
+
+def candidates(points: np.ndarray, sensor_xy: np.ndarray, plane: Plane,
+               params: StandingParams = StandingParams(), model: PersonModel = PersonModel()) -> list[Candidate]:
+    """Every standing cluster of a world cloud (N, 3), most person-like first."""
+    if len(points) < params.min_points:
+        return []
+    ground = ground_of(points, plane, params)
+    found = []
+    for cluster in standing_clusters(points, ground, params):
+        shape = shape_of(cluster, sensor_xy, model)
+        confidence, terms = person_confidence(shape, model)
+        found.append(Candidate(shape, confidence, terms, cluster.points))
+    return sorted(found, key=lambda c: -c.confidence)
