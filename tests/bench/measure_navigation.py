@@ -14,7 +14,15 @@ server runs `navigate --to X,Y --sensor S`, and the run is scored from its produ
 - localisation error at the end: |estimated - true| position, beside dead reckoning alone.
 
     .venv/bin/python tests/bench/measure_navigation.py [--scenes 30] [--first-seed 101] [--jobs 2]
-        [--sensors tof stereo] [--size 34] [--out /tmp/rvs-navigation]
+        [--sensors tof stereo] [--size 34] [--orient on|off] [--results tests/bench/results/navigation.jsonl]
+        [--out /tmp/rvs-navigation]
+    .venv/bin/python tests/bench/measure_navigation.py --report tests/bench/results/navigation.jsonl
+
+Each finished run is appended to --results the moment it ends (clients/run_log.py: one JSON line
+with its seed, sensor, settings (size, orient), every score and its seconds); a rerun with the same
+settings skips the runs already there, so a campaign is continued chunk by chunk (--scenes 3, then
+--scenes 6, ...). Which seeds have a goal is kept beside it (navigation-seeds.json) so a rerun does
+not build every world again. --report prints the summary from the file alone, per settings.
 """
 from __future__ import annotations
 
@@ -24,7 +32,7 @@ import math
 import shutil
 import sys
 import time
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 
 import numpy as np
@@ -32,6 +40,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO / "tests"))
 sys.path.insert(0, str(REPO))
+from clients.run_log import RunLog, describe, group_by_settings, read_runs  # noqa: E402
 from conftest import ServerProcess, pairs  # noqa: E402
 from drivers.sim.config import WorldConfig  # noqa: E402
 from drivers.sim.world import World  # noqa: E402
@@ -43,6 +52,7 @@ CLEARANCE_M = 0.4        # a way for the rover's radius 0.3 m plus 0.1 m: naviga
 STEP_M = 0.10
 SLOPE_LIMIT_DEG = 20.0
 CELL_M = 0.05
+RESULTS = REPO / "tests" / "bench" / "results" / "navigation.jsonl"
 
 
 def scene_config(seed: int, size: float) -> dict:
@@ -148,16 +158,26 @@ def has_goal(seed: int, size: float) -> bool:
         return False
 
 
-def usable_seeds(first: int, count: int, size: float, jobs: int = 2) -> tuple[list[int], list[int]]:
+def usable_seeds(first: int, count: int, size: float, jobs: int = 2,
+                 known: Path | None = None) -> tuple[list[int], list[int]]:
     """The first `count` seeds from `first` whose scene has a goal with a true path. Each world is
-    built in a process of its own: one process building 31 worlds grew to 7 GB and was killed."""
+    built in a process of its own: one process building 31 worlds grew to 7 GB and was killed.
+    `known` (JSON: size -> seed -> usable) keeps the answers, so a rerun builds no world twice."""
+    cache = json.loads(known.read_text()) if known is not None and known.exists() else {}
+    answers = {int(k): v for k, v in cache.get(f"{size:g}", {}).items()}
     seeds, boxed_in, seed = [], [], first
     with ProcessPoolExecutor(max_workers=jobs, max_tasks_per_child=1) as pool:
         while len(seeds) < count:
             batch = list(range(seed, seed + count - len(seeds)))
-            for candidate, usable in zip(batch, pool.map(has_goal, batch, [size] * len(batch))):
-                (seeds if usable else boxed_in).append(candidate)
+            unknown = [s for s in batch if s not in answers]
+            answers.update(zip(unknown, pool.map(has_goal, unknown, [size] * len(unknown))))
+            for candidate in batch:
+                (seeds if answers[candidate] else boxed_in).append(candidate)
             seed = batch[-1] + 1
+    if known is not None:
+        cache[f"{size:g}"] = {str(k): v for k, v in sorted(answers.items())}
+        known.parent.mkdir(parents=True, exist_ok=True)
+        known.write_text(json.dumps(cache, indent=1) + "\n")
     return seeds, boxed_in
 
 
@@ -195,6 +215,21 @@ def summarise(results: list[dict], sensor: str) -> str:
     return "\n".join(lines)
 
 
+def report(path: Path) -> str:
+    """The summary of a results file, per settings and sensor, from the file alone."""
+    records = read_runs(path)
+    if not records:
+        return f"{path}: no runs"
+    blocks = []
+    for settings, runs in group_by_settings(records):
+        finished = [{**r, **r["run"]} for r in runs if "error" not in r]
+        lines = [f"== {describe(settings)}: {len(finished)} runs, {sum(r['seconds'] for r in runs):.0f} s"]
+        lines += [summarise(finished, sensor) for sensor in sorted({r["sensor"] for r in finished})]
+        lines += [f"  scene {r['run']['seed']} {r['run']['sensor']} broke: {r['error'][:200]}" for r in runs if "error" in r]
+        blocks.append("\n".join(lines))
+    return "\n\n".join(blocks)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--scenes", type=int, default=30)
@@ -204,45 +239,49 @@ def main() -> None:
     parser.add_argument("--size", type=float, default=34.0)
     parser.add_argument("--sim-speed", type=float, default=100.0)
     parser.add_argument("--only", type=int, nargs="+", help="run only these seeds of the campaign (a quick check)")
-    parser.add_argument("--out", type=Path, default=Path("/tmp/rvs-navigation"))
+    parser.add_argument("--out", type=Path, default=Path("/tmp/rvs-navigation"), help="the servers' work folders")
+    parser.add_argument("--results", type=Path, default=RESULTS, help="the JSON-lines file runs are kept in")
+    parser.add_argument("--report", type=Path, help="print the summary of this results file and exit")
     parser.add_argument("--orient", choices=["on", "off"], default="off", help="navigation.toml orient: an orient "
-                        "look at the start of each cycle")
+                        "look between the moves")
     args = parser.parse_args()
+    if args.report:
+        print(report(args.report))
+        return
     args.out.mkdir(parents=True, exist_ok=True)
-    log = args.out / "results.jsonl"
-    done = {(r["seed"], r["sensor"]): r for r in map(json.loads, log.read_text().splitlines())} if log.exists() else {}
+    log = RunLog(args.results, {"size_m": args.size, "orient": args.orient})
+    known = args.results.with_name(args.results.stem + "-seeds.json")
     if args.only:  # checked one by one: building all the campaign's worlds first takes minutes
         seeds, boxed_in = [], []
         for seed in args.only:
-            found, skipped = usable_seeds(seed, 1, args.size)
+            found, skipped = usable_seeds(seed, 1, args.size, known=known)
             seeds += [s for s in found if s == seed]
             boxed_in += skipped
     else:
-        seeds, boxed_in = usable_seeds(args.first_seed, args.scenes, args.size, args.jobs)
+        seeds, boxed_in = usable_seeds(args.first_seed, args.scenes, args.size, args.jobs, known=known)
     print(f"{len(seeds)} scenes: seeds {seeds[0]}-{seeds[-1]}; {len(boxed_in)} seeds skipped because the rover is "
           f"boxed in at the start on the true map: {boxed_in}", flush=True)
-    tasks = [(seed, sensor) for seed in seeds for sensor in args.sensors if (seed, sensor) not in done]
-    results = [r for r in done.values() if r["seed"] in seeds and r["sensor"] in args.sensors]
+    planned = [{"seed": seed, "sensor": sensor} for seed in seeds for sensor in args.sensors]
+    tasks = log.todo(planned)
+    print(f"{len(planned) - len(tasks)} of {len(planned)} runs already in {args.results}; {len(tasks)} to go", flush=True)
     with ProcessPoolExecutor(max_workers=args.jobs, max_tasks_per_child=1) as pool:   # a fresh process per scene
-        futures = {pool.submit(run, seed, sensor, args.size, args.out, args.sim_speed, args.orient == "on"): (seed, sensor)
-                   for seed, sensor in tasks}
-        for future in futures:
-            seed, sensor = futures[future]
+        futures = {pool.submit(run, task["seed"], task["sensor"], args.size, args.out, args.sim_speed,
+                               args.orient == "on"): task for task in tasks}
+        for future in as_completed(futures):
+            task = futures[future]
             try:
                 result = future.result()
-            except Exception as exc:  # a scene that cannot run is reported, not hidden
-                result = {"seed": seed, "sensor": sensor, "error": repr(exc)[:300]}
-                print(f"scene {seed} {sensor}: ERROR {result['error']}", flush=True)
+            except Exception as exc:  # a scene that cannot run is written and reported, not hidden
+                log.append(task, 0.0, error=repr(exc)[:500])
+                print(f"scene {task['seed']} {task['sensor']}: ERROR {exc!r}"[:400], flush=True)
                 continue
-            results.append(result)
-            with open(log, "a") as handle:
-                handle.write(json.dumps(result) + "\n")
-            print(f"scene {seed} {sensor}: {'success' if result['success'] else 'FAILED ' + result['outcome']}, "
+            scores = {k: v for k, v in result.items() if k not in ("seed", "sensor", "seconds")}
+            log.append(task, result["seconds"], **scores)
+            print(f"scene {task['seed']} {task['sensor']}: {'success' if result['success'] else 'FAILED ' + result['outcome']}, "
                   f"{result['driven_m']:.1f} m driven for {result['optimal_m']:.1f} m optimal, contacts "
                   f"{result['contacts']}, localisation {100 * result['localisation_error_m']:.1f} cm "
                   f"(odometry {100 * result['odometry_error_m']:.1f} cm), {result['seconds']:.0f} s", flush=True)
-    for sensor in args.sensors:
-        print(summarise(results, sensor))
+    print(report(args.results))
 
 
 if __name__ == "__main__":

@@ -1,14 +1,20 @@
 """Campaign: orient's visual odometry on seeded traverses, scored against the simulator's true pose.
 
     .venv/bin/python tests/bench/orient_campaign.py [--seeds 1..20] [--sensors stereo tof] [--jobs 2]
-        [--length 30] [--out /tmp/rvs-orient]
+        [--length 30] [--max-turn 15] [--results tests/bench/results/orient.jsonl] [--out /tmp/rvs-orient]
+    .venv/bin/python tests/bench/orient_campaign.py --report tests/bench/results/orient.jsonl
+
+Each finished run is appended to --results at once (clients/run_log.py: one JSON line with its seed,
+sensor, settings, scores, looks and seconds); a rerun with the same settings skips the runs already
+there, so a campaign the clock stops is continued by running it again. --report prints the summary
+tables from the file alone, one per settings (length, max turn) and sensor.
 
 Per scene and sensor: a real rvs-server on a 40 m seeded world (rock cover 7 %, three craters, the
 world's drive error on: 2 % of distance, 2 % + 0.5 deg of a turn, 0.3 deg/m heading creep, 1 % slip)
 drives a 30 m traverse from (-13, -13) toward the far corner in steps of 0.5-1.5 m, each after a
 turn (steered to the corner, off course by N(0, 8 deg), round rocks taller than 8 cm and slopes over
-15 deg, as navigate with its 9 cm step limit would; a turn over 15 deg is made in parts, a look
-after each, so that consecutive views overlap); after every step `orient --sensor S` looks and its answer becomes the pose estimate. Scored
+15 deg, as navigate with its 9 cm step limit would; a turn over --max-turn deg is made in parts, a look
+after each; 15 keeps consecutive views overlapping, 90 drives the turns a GNC would, unsplit); after every step `orient --sensor S` looks and its answer becomes the pose estimate. Scored
 against the true pose in each orient product's truth/ (KITTI's odometry metrics on the looks):
 
 - relative error over 5 m and 10 m segments of true path: |translation error| / length (%) and
@@ -26,7 +32,7 @@ import math
 import sys
 import tempfile
 import time
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 
 import numpy as np
@@ -35,13 +41,15 @@ REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO / "tests"))
 sys.path.insert(0, str(REPO))
 
+from clients.run_log import RunLog, describe, group_by_settings, read_runs  # noqa: E402
 from conftest import ServerProcess, pairs, write_configs  # noqa: E402
 from drivers.sim.motion import dead_reckon  # noqa: E402
 
 START = (-13.0, -13.0, 45.0)
 AIM = (13.0, 13.0)
 LANE_HALF_WIDTH = 0.5
-MAX_TURN_DEG = 15.0         # a turn larger than this is made in parts, a look after each
+MAX_TURN_DEG = 15.0         # default --max-turn: a turn larger than this is made in parts, a look after each
+RESULTS = REPO / "tests" / "bench" / "results" / "orient.jsonl"
 TALL_ROCK_M = 0.08          # navigate's step limit is 9 cm: a traverse it would drive
 
 
@@ -82,10 +90,11 @@ def plan_step(world, rng, true_pose) -> tuple[float, float]:
     return math.degrees(wrap(target - h)), length
 
 
-def run(seed: int, sensor: str, length: float, out: Path, verbose: bool = False) -> dict:
+def run(seed: int, sensor: str, length: float, max_turn: float, out: Path, verbose: bool = False) -> dict:
     from drivers.sim.config import WorldConfig
     from drivers.sim.world import World
     import tomllib
+    started = time.perf_counter()
     text = world_toml(seed)
     world = World.build(WorldConfig(**tomllib.loads(text)))
     rng = np.random.default_rng([seed, 7])
@@ -132,8 +141,8 @@ def run(seed: int, sensor: str, length: float, out: Path, verbose: bool = False)
         while driven < length:
             true = looks[-1]["true"] if looks else (START[0], START[1], math.radians(START[2]))
             turn, forward = plan_step(world, rng, true)
-            # Turns in parts of at most MAX_TURN_DEG, a look after each: the views must overlap.
-            parts = math.ceil(abs(turn) / MAX_TURN_DEG) if abs(turn) >= 0.5 else 0
+            # Turns in parts of at most max_turn, a look after each (15 deg: the views overlap).
+            parts = math.ceil(abs(turn) / max_turn) if abs(turn) >= 0.5 else 0
             for _ in range(parts):
                 reply = client.command(f"drive --turn {turn / parts:.2f}", timeout=300)
                 if " OK " not in reply:
@@ -150,9 +159,8 @@ def run(seed: int, sensor: str, length: float, out: Path, verbose: bool = False)
     finally:
         client.close()
         server.stop()
-    result = {"seed": seed, "sensor": sensor, "calls": calls, "failures": failures, "looks": looks}
-    (out / f"{sensor}-{seed}.json").write_text(json.dumps(result))
-    return result
+    return {"seed": seed, "sensor": sensor, "calls": calls, "failures": failures, "looks": looks,
+            "seconds": time.perf_counter() - started}
 
 
 # ---------------------------------------------------------------------------------- scoring
@@ -184,6 +192,26 @@ def end_errors(result: dict, key: str) -> tuple[float, float]:
     distance = sum(math.dist(a["true"][:2], b["true"][:2]) for a, b in zip(result["looks"], result["looks"][1:]))
     position = math.dist(last[key][:2], last["true"][:2])
     return 100 * position / max(distance, 1e-9), abs(math.degrees(wrap(last[key][2] - last["true"][2])))
+
+
+def scores(result: dict) -> dict:
+    """One run's own figures, written beside its looks (the summary pools the looks of all runs)."""
+    out = {"calls": result["calls"], "failed": len(result["failures"]),
+           "converged_pct": round(100 * (result["calls"] - len(result["failures"])) / max(result["calls"], 1), 2)}
+    if not result["looks"]:
+        return out
+    for key, name in (("estimate", "orient"), ("dead_reckoning", "dead_reckoning")):
+        for length in (5.0, 10.0):
+            errors = np.array(segment_errors(result["looks"], key, length)).reshape(-1, 2)
+            if len(errors):
+                out[f"{name}_seg{length:g}m_pct"] = round(float(np.median(errors[:, 0])), 4)
+                out[f"{name}_seg{length:g}m_deg_m"] = round(float(np.median(errors[:, 1])), 5)
+        end, heading = end_errors(result, key)
+        out[f"{name}_end_pct"], out[f"{name}_end_heading_deg"] = round(end, 4), round(heading, 4)
+    wall = [l["wall_ms"] for l in result["looks"][1:]]
+    if wall:
+        out["wall_ms_median"] = round(float(np.median(wall)), 1)
+    return out
 
 
 def summarise(results: list[dict], sensor: str) -> str:
@@ -223,33 +251,63 @@ def summarise(results: list[dict], sensor: str) -> str:
     return "\n".join(lines)
 
 
+def report(path: Path) -> str:
+    """The summary tables of a results file, one per settings and sensor, from the file alone."""
+    records = read_runs(path)
+    if not records:
+        return f"{path}: no runs"
+    blocks = []
+    for settings, runs in group_by_settings(records):
+        finished = [r for r in runs if "error" not in r]
+        lines = [f"== {describe(settings)}: {len(finished)} runs, {sum(r['seconds'] for r in runs):.0f} s"]
+        for sensor in sorted({r["run"]["sensor"] for r in finished}):
+            lines.append(summarise([{**r, **r["run"]} for r in finished], sensor))
+        for r in runs:
+            if "error" in r:
+                lines.append(f"  {r['run']['sensor']} seed {r['run']['seed']} broke: {r['error'][:200]}")
+        blocks.append("\n".join(lines))
+    return "\n\n".join(blocks)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--seeds", type=int, nargs="+", default=list(range(1, 21)))
     parser.add_argument("--sensors", nargs="+", default=["stereo", "tof"])
     parser.add_argument("--length", type=float, default=30.0)
+    parser.add_argument("--max-turn", type=float, default=MAX_TURN_DEG,
+                        help="a turn larger than this (deg) is made in parts, a look after each")
     parser.add_argument("--jobs", type=int, default=2)
-    parser.add_argument("--out", type=Path, default=Path("/tmp/rvs-orient"))
+    parser.add_argument("--results", type=Path, default=RESULTS, help="the JSON-lines file runs are kept in")
+    parser.add_argument("--report", type=Path, help="print the summary of this results file and exit")
+    parser.add_argument("--out", type=Path, default=Path("/tmp/rvs-orient"), help="the servers' work folders")
     parser.add_argument("--verbose", action="store_true", help="a line per look")
     args = parser.parse_args()
+    if args.report:
+        print(report(args.report))
+        return
     args.out.mkdir(parents=True, exist_ok=True)
+    log = RunLog(args.results, {"length_m": args.length, "max_turn_deg": args.max_turn})
     started = time.perf_counter()
-    tasks = [(seed, sensor) for sensor in args.sensors for seed in args.seeds]
-    results = []
-    with ProcessPoolExecutor(args.jobs) as pool:
-        futures = {pool.submit(run, seed, sensor, args.length, args.out, args.verbose): (seed, sensor) for seed, sensor in tasks}
-        for future, (seed, sensor) in futures.items():
+    planned = [{"seed": seed, "sensor": sensor} for sensor in args.sensors for seed in args.seeds]
+    tasks = log.todo(planned)
+    print(f"{len(planned) - len(tasks)} of {len(planned)} runs already in {args.results}; {len(tasks)} to go", flush=True)
+    with ProcessPoolExecutor(args.jobs, max_tasks_per_child=1) as pool:
+        futures = {pool.submit(run, task["seed"], task["sensor"], args.length, args.max_turn, args.out, args.verbose):
+                   task for task in tasks}
+        for future in as_completed(futures):
+            task = futures[future]
             try:
                 result = future.result()
-            except Exception as exc:   # a run that broke is reported, the campaign goes on
-                print(f"{sensor} seed {seed}: {exc}", flush=True)
+            except Exception as exc:   # a run that broke is written and reported; the campaign goes on
+                log.append(task, 0.0, error=repr(exc)[:500])
+                print(f"{task['sensor']} seed {task['seed']}: broke: {exc}", flush=True)
                 continue
-            results.append(result)
-            print(f"{sensor} seed {seed}: {len(result['looks'])} looks, {len(result['failures'])} failed, "
-                  f"end {end_errors(result, 'estimate')[0]:.2f} % (dead reckoning {end_errors(result, 'dead_reckoning')[0]:.2f} %)",
-                  flush=True)
-    for sensor in args.sensors:
-        print(summarise(results, sensor))
+            seconds = result["seconds"]
+            record = log.append(task, seconds, **scores(result), failures=result["failures"], looks=result["looks"])
+            print(f"{task['sensor']} seed {task['seed']}: {len(result['looks'])} looks, {record['failed']} failed, "
+                  f"end {record.get('orient_end_pct', float('nan')):.2f} % (dead reckoning "
+                  f"{record.get('dead_reckoning_end_pct', float('nan')):.2f} %), {seconds:.0f} s", flush=True)
+    print(report(args.results))
     print(f"campaign took {time.perf_counter() - started:.0f} s")
 
 
