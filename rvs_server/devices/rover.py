@@ -9,6 +9,9 @@ it, and the GNC's `pose` command replaces it. Two drives sit behind one interfac
     gnc        the waypoints or the action go out as a `navigate` event (the GNC interface is written
                here only), then the job waits for the GNC's `pose X,Y,HEADING`
 
+Either way the estimate's roll and pitch after the move are what the rover can measure where it
+stands (`RoverDevice.settle`), never the ones from before it.
+
 `RoverDevice.drive` is the one place that picks between them from a command family's setting
 (auto | simulated | gnc). The simulator's truth (the true pose, the world's extent, the forward
 camera's view) is reached through this device, never by a command module.
@@ -20,7 +23,7 @@ from __future__ import annotations
 
 import math
 from abc import ABC, abstractmethod
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Callable, ClassVar, Iterator, Literal, Sequence
 
 import numpy as np
@@ -29,6 +32,8 @@ from drivers.sim.forward_camera import ForwardCamera, ForwardCameraConfig
 from drivers.sim.motion import dead_reckon, turn_and_distance
 from drivers.sim.testbed import INCLINOMETER_NOISE_DEG
 from toolbox.geometry import RoverPose
+from toolbox.grid import GridSpec
+from toolbox.mapping.attitude import attitude_on_ground
 
 from ..protocol import BadRequest, DeviceError, Timeout
 from .sharing import DeviceSharing
@@ -39,6 +44,7 @@ if TYPE_CHECKING:
 
 DriveMode = Literal["auto", "simulated", "gnc"]
 POSE_POLL_S = 0.5
+GROUND_RADIUS_M = 0.4   # the map's cells within this of the rover's centre carry its wheels (0.38 x 0.40 m apart)
 NO_FORWARD_CAMERA = "the forward camera is the simulated rover's body-fixed camera and the devices are real"
 
 __all__ = ["Drive", "DriveGuard", "DriveMode", "DriveStopped", "ForwardCamera", "ForwardCameraConfig", "GncDrive", "Moved", "Pace", "RoverDevice",
@@ -181,6 +187,7 @@ class SimulatedDrive(Drive):
                 why = rover.guard.check(job, here, direction, abs(distance - done_distance), speed.drive_m_s,
                                         started_s)
                 if why is not None:
+                    here = rover.pose_estimate = rover.settle(here)
                     moved = Moved(here, (done_turn, done_distance), 1, contacts, true_path)
                     rover.guard.stopped(why, here, rover.stop_truth(direction, pace.step_height_m))
                     raise DriveStopped(rover.guard.name, why, moved)
@@ -188,7 +195,8 @@ class SimulatedDrive(Drive):
             try:
                 contacts += int(testbed.step_rover(tuple(true), pace.step_height_m))
             except ValueError as exc:   # the simulated world ends (a real rover's ground does not)
-                rover.pose_estimate = self._estimate(start, done_turn, done_distance, start.roll, start.pitch)
+                rover.pose_estimate = rover.settle(self._estimate(start, done_turn, done_distance, start.roll,
+                                                                  start.pitch))
                 raise WorldEdge(f"the simulated rover would leave the simulated world: {exc}") from None
             true_path.append([float(v) for v in true])
             if driving:
@@ -196,10 +204,9 @@ class SimulatedDrive(Drive):
             else:
                 done_turn = turn * k / planned.turn_steps
             rover.pose_estimate = self._estimate(start, done_turn, done_distance, start.roll, start.pitch)
-        # The attitude where it stopped: the inclinometer (navigate's legs read it on the drive's own
-        # noise stream, as always; other moves on the inclinometer's, so their drive errors stay).
-        roll, pitch = testbed.inclination() if incline else testbed.inclinometer()
-        estimate = self._estimate(start, turn, distance, roll, pitch)
+        # The attitude where it stopped, as measured (navigate's legs read the inclinometer on the
+        # drive's own noise stream, as always; other moves on the inclinometer's, so drive errors stay).
+        estimate = rover.settle(self._estimate(start, turn, distance, start.roll, start.pitch), drive_stream=incline)
         rover.pose_estimate = estimate
         return Moved(estimate, (turn, distance), 1, contacts, true_path)
 
@@ -347,9 +354,29 @@ class RoverDevice:
             return SimulatedDrive(self)
         return GncDrive(self)
 
+    def settle(self, estimate: RoverPose, ground: Callable[[], tuple[np.ndarray, GridSpec] | None] | None = None,
+               drive_stream: bool = False) -> RoverPose:
+        """`estimate` (a pose a drive just reached, or the GNC's report) with the roll and pitch the
+        rover can measure where it stands: the inclinometer when it has one (the simulated rover;
+        drive_stream: read on the drive's noise stream, as navigate's legs always have); with none,
+        the plane of the terrain under its wheels in `ground` (called only then: the newest DEM's
+        heights, or None); else the old ones.
+
+        Why: dead reckoning and the GNC's `pose` carry x, y and heading only, yet every map places
+        its points through the estimate's whole attitude (mapping/steps.py camera_to_world), so the
+        roll and pitch from before a move tilt the next map (dem-update-tof) by the attitude's change:
+        a turn on a slope swaps roll into pitch, driving onto a slope tilts the body."""
+        if self.simulated:
+            roll, pitch = self.testbed.inclination() if drive_stream else self.testbed.inclinometer()
+            return replace(estimate, roll=roll, pitch=pitch)
+        dem = ground() if ground is not None else None
+        tilt = None if dem is None else attitude_on_ground(*dem, estimate.x, estimate.y, estimate.heading,
+                                                           GROUND_RADIUS_M)
+        return estimate if tilt is None else replace(estimate, roll=tilt[0], pitch=tilt[1])
+
     def inclination(self) -> tuple[float, float]:
-        """Roll and pitch now: the simulated rover's inclinometer; else the estimate's (the GNC
-        reports them with its pose). The estimate's own may be a drive old: a `drive` keeps them."""
+        """Roll and pitch now: the simulated rover's inclinometer; else the estimate's (settled after
+        every drive and every `pose` of the GNC: see settle)."""
         if self.simulated:
             return self.testbed.inclinometer()
         pose = self.pose_estimate

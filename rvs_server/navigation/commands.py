@@ -425,5 +425,16 @@ def pose(call: Call, cfg: PoseConfig) -> dict[str, Any]:
         raise BadRequest(f"pose: {cfg.pose!r} must be finite numbers")
     rover = call.server.devices.rover
     old = rover.pose_estimate
-    rover.report_pose(RoverPose(x, y, old.z, math.radians(heading), old.roll, old.pitch))
+    reported = RoverPose(x, y, old.z, math.radians(heading), old.roll, old.pitch)
+    rover.report_pose(rover.settle(reported, ground=lambda: newest_dem(call.server)))
     return {"x": f"{x:.3f}", "y": f"{y:.3f}", "heading": f"{heading:.2f}"}
+
+
+def newest_dem(server: Host) -> tuple[np.ndarray, GridSpec] | None:
+    """The heights and grid of the newest DEM product of either sensor, or None: the terrain under
+    the wheels that gives a rover without an inclinometer its attitude after the GNC moved it."""
+    mapped = server.products.latest("dem-.*")
+    if mapped is None or not (mapped.path / "dem.tif").exists():
+        return None
+    heights, spec = read_geotiff(mapped.path / "dem.tif")
+    return heights, spec

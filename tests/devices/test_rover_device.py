@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 from types import SimpleNamespace
 
+import numpy as np
 import pytest
 
 from drivers.sim.clock import SimClock
@@ -14,7 +15,8 @@ from rvs_server.devices.cameras import CamerasDeviceConfig
 from rvs_server.devices.rover import GncDrive, Pace, SimulatedDrive, WorldEdge
 from rvs_server.devices.tof import TofDeviceConfig
 from rvs_server.protocol import BadRequest, DeviceError, Timeout
-from toolbox.geometry import RoverPose
+from toolbox.geometry import RoverPose, rotation_rpy
+from toolbox.grid import GridSpec
 
 PACE = Pace(step_height_m=0.10, pose_timeout_s=2.0)
 REAL = DevicesConfig(tof=TofDeviceConfig(backend="mesa"), cameras=CamerasDeviceConfig(backend="vimba"))
@@ -145,3 +147,21 @@ def test_reinit_keeps_the_estimate_and_the_pose_reports(devices):
     assert new.pose_estimate == RoverPose(1.0, 2.0) and new.reports == 1
     old.report_pose(RoverPose(3.0, 4.0))     # a pose sent while the devices were being replaced
     assert new.pose_estimate == RoverPose(3.0, 4.0) and new.reports == 2
+
+
+def test_settle_without_an_inclinometer_takes_the_attitude_from_the_mapped_ground_under_the_wheels(devices):
+    rover = devices(REAL).rover
+    spec = GridSpec.covering((-2.0, 2.0), (-2.0, 2.0), 0.05)
+    xs, ys = spec.centres()
+    a, b = math.tan(math.radians(8.0)), math.tan(math.radians(-5.0))     # rises east 8 deg, falls north 5 deg
+    heights = (a * xs[None, :] + b * ys[:, None]).astype("float32")
+    heights[:, : spec.cols // 2 - 4] = float("nan")                         # a half mapped: enough under the wheels
+    old = RoverPose(0.3, -0.2, 0.0, math.radians(35.0), 0.01, -0.02)
+    settled = rover.settle(old, ground=lambda: (heights, spec))
+    normal = np.array([-a, -b, 1.0]) / math.sqrt(a * a + b * b + 1.0)
+    up = rotation_rpy(settled.roll, settled.pitch, settled.heading)[:, 2]
+    assert math.degrees(math.acos(min(1.0, float(up @ normal)))) < 0.05
+    assert (settled.x, settled.y, settled.z, settled.heading) == (old.x, old.y, old.z, old.heading)
+    assert rover.settle(old, ground=lambda: None) == old                   # no map: the old attitude
+    assert rover.settle(old, ground=lambda: (heights * float("nan"), spec)) == old   # nothing mapped there
+    assert rover.settle(old) == old
