@@ -1,6 +1,6 @@
 """Builds an RVS server from a configuration directory and runs it: devices, modules, transports.
 
-    rvs-server [--host H] [--port P] [--zmq-port Z] [--data-dir D] [--config-dir C]
+    rvs-server [--host H] [--port P] [--zmq-port Z] [--web-port W] [--data-dir D] [--config-dir C]
                [--sim-speed S] [--token-file F] [--world-seed N | --world FILE]
 
 Exit status: 0 after `quit` or a signal, 2 when a configuration file or an option is invalid.
@@ -39,6 +39,7 @@ from .jobs import JobCounter, RecoveryStore
 from .protocol import BadRequest
 from .transports.tcp import claim_tcp_port, start_tcp
 from .transports.zmq import ZmqTransport
+from .web import WebView
 
 log = logging.getLogger("rvs")
 
@@ -49,6 +50,7 @@ class ServerConfig(Settings):
     host: str = "127.0.0.1"
     port: int = Field(7400, ge=0, le=65535)
     zmq_port: int = Field(7401, ge=0, le=65534, description="ROUTER; the PUB socket is on zmq_port + 1")
+    web_port: int = Field(7403, ge=0, le=65535, description="the web view (HTTP, rvs_server/web); 0 turns it off")
     data_dir: str = "./data"
     shared_dir: str = Field("", description="where logbook copies the log; default DATA_DIR/shared")
     token_file: str | None = None
@@ -178,6 +180,11 @@ class Server:
         self.shared_dir = Path(self.settings.shared_dir).resolve() if self.settings.shared_dir else \
             self.data_dir / "shared"
         self.token = read_token(Path(self.settings.token_file)) if self.settings.token_file else None
+        s = self.settings
+        own_ports = {s.port} | ({s.zmq_port, s.zmq_port + 1} if s.zmq_port else set())
+        if s.web_port and s.web_port in own_ports:
+            raise ConfigError(f"web_port {s.web_port} is one of the server's other ports (the text port, "
+                              f"the ZeroMQ ROUTER or the PUB port on zmq_port + 1): choose another")
         if not is_loopback(self.settings.host) and self.token is None:
             raise ConfigError(f"host {self.settings.host} is not loopback: listening there requires "
                               f"--token-file (a file only its owner can read)")
@@ -190,6 +197,7 @@ class Server:
         self.activities = Activities()  # background loops beside the job (activities.py)
         self.devices = Devices(self.devices_config, self.clock, self.world_config, self.world_file)
         self.zmq: ZmqTransport | None = None
+        self.web: WebView | None = None  # the web view, when web_port is not 0
         self.started = time.monotonic()
         self.log_handlers: list[logging.Handler] = []
         self.log_path = self._start_log()
@@ -282,6 +290,8 @@ class Server:
                 session.send_event(topic, data)
         if self.zmq is not None:
             self.zmq.publish(topic, data)
+        if self.web is not None:  # the third consumer: browsers' event streams (rvs_server/web/events.py)
+            self.web.publish(topic, data)
 
     def publish_threadsafe(self, topic: str, data: Mapping[str, Any]) -> None:
         loop = self._loop
@@ -308,6 +318,9 @@ class Server:
         # Claim first: a taken port must stop start-up before any device moves or a world is built.
         listener = claim_tcp_port(s.host, s.port)
         try:
+            if s.web_port:
+                self.web = WebView(self)
+                self.web.claim(s.host, self._web_port())
             self.zmq = ZmqTransport(self)
             self.zmq.bind(s.host, s.zmq_port)
             if not self.stopping:
@@ -319,17 +332,31 @@ class Server:
         finally:
             if self._tcp is None:
                 listener.close()
+                if self.web is not None:
+                    self.web.release()
         if self.stopping:  # asked to stop while the listener was being set up
             return
         self._zmq_task = asyncio.ensure_future(self.zmq.serve())
         self.ready = True
+        web = "off"
+        if self.web is not None:  # listens only now: a browser never sees a half-started server
+            web_host, web_port = await self.web.start()
+            web = f"{web_host}:{web_port}"
         tcp_port = self._tcp.sockets[0].getsockname()[1]
         self.address = (s.host, tcp_port)
-        log.info("RVS %s listening tcp=%s:%d zmq=%s pub=%s data=%s log=%s", self.version, s.host, tcp_port,
-                 self.zmq.router_endpoint, self.zmq.pub_endpoint, self.data_dir, self.log_path)
+        log.info("RVS %s listening tcp=%s:%d zmq=%s pub=%s web=%s data=%s log=%s", self.version, s.host,
+                 tcp_port, self.zmq.router_endpoint, self.zmq.pub_endpoint, web, self.data_dir, self.log_path)
         # One machine-readable line on stdout, for scripts and tests that start the server on port 0.
         print(f"rvs-server ready tcp={s.host}:{tcp_port} zmq={self.zmq.router_endpoint} "
-              f"pub={self.zmq.pub_endpoint} pid={os.getpid()}", flush=True)
+              f"pub={self.zmq.pub_endpoint} web={web} pid={os.getpid()}", flush=True)
+
+    def _web_port(self) -> int:
+        """The web port to bind. A server started with `--port 0` (scripts and tests, often several side
+        by side) picks a free web port too unless one was given, instead of all fighting over 7403."""
+        s = self.settings
+        if s.port == 0 and "web_port" not in s.model_fields_set:
+            return 0
+        return s.web_port
 
     def _open_devices(self) -> None:
         """Every device, and the simulated world they share: jobs never wait for it once ready."""
@@ -345,8 +372,12 @@ class Server:
         self._loop = asyncio.get_running_loop()
         self._stopped = asyncio.Event()
         self._start_task = asyncio.ensure_future(self.start())
-        await self._start_task  # a taken port raises here
-        await self._stopped.wait()
+        try:
+            await self._start_task  # a taken port raises here
+            await self._stopped.wait()
+        finally:
+            if self.web is not None:
+                await self.web.close()
 
     def shutdown(self, reason: str = "quit") -> Awaitable[dict[str, Any]]:
         """Interrupt the job (keeping its recovery set), park and close devices, then stop. Safe to
@@ -434,6 +465,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--host", help="address to listen on (default 127.0.0.1)")
     parser.add_argument("--port", type=int, help="text (telnet) port (default 7400; 0 picks a free one)")
     parser.add_argument("--zmq-port", type=int, help="ZeroMQ ROUTER port; PUB on the next (default 7401)")
+    parser.add_argument("--web-port", type=int, help="web view (HTTP) port, same host as --port (default 7403; "
+                                                       "0 turns it off)")
     parser.add_argument("--data-dir", help="where products, logs and recovery sets go (default ./data)")
     parser.add_argument("--config-dir", default="./configs", help="configuration files (default ./configs)")
     parser.add_argument("--sim-speed", type=float, help="simulated seconds per wall second (default 1.0)")
@@ -472,7 +505,8 @@ def main(argv: list[str] | None = None) -> int:
     """Run the server. rvs_server/__main__.py blocks SIGINT and SIGTERM from the first instant; they
     are unblocked once the loop handles them, so one sent during start-up is delivered then."""
     args = parse_args(argv)
-    overrides = {"host": args.host, "port": args.port, "zmq_port": args.zmq_port, "data_dir": args.data_dir,
+    overrides = {"host": args.host, "port": args.port, "zmq_port": args.zmq_port, "web_port": args.web_port,
+                 "data_dir": args.data_dir,
                  "sim_speed": args.sim_speed, "token_file": args.token_file, "world_seed": args.world_seed,
                  "world": args.world}
     try:

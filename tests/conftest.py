@@ -33,12 +33,15 @@ class ServerProcess:
     port: int = 0
     zmq: str = ""
     pub: str = ""
+    web: str = "off"
     stderr_path: Path | None = None
     extra_args: list[str] = field(default_factory=list)
 
     def start(self, timeout: float = 60.0) -> "ServerProcess":
         self.stderr_path = self.data_dir.parent / f"server-{int(time.time() * 1000)}.stderr"
-        args = [*SERVER, "--port", "0", "--zmq-port", "0", "--data-dir", str(self.data_dir),
+        # The web view is off unless a test asks for it (extra_args come last and win): its default
+        # port is fixed, and servers started side by side must not fight over it.
+        args = [*SERVER, "--port", "0", "--zmq-port", "0", "--web-port", "0", "--data-dir", str(self.data_dir),
                 "--config-dir", str(self.config_dir), "--sim-speed", str(SIM_SPEED), *self.extra_args]
         with open(self.stderr_path, "wb") as err:
             self.proc = subprocess.Popen(args, cwd=REPO, stdout=subprocess.PIPE, stderr=err,
@@ -53,6 +56,7 @@ class ServerProcess:
                 fields = dict(part.split("=", 1) for part in line.split()[2:])
                 self.host, port = fields["tcp"].rsplit(":", 1)
                 self.port, self.zmq, self.pub = int(port), fields["zmq"], fields["pub"]
+                self.web = fields.get("web", "off")  # HOST:PORT of the web view, or off
                 return self
         raise RuntimeError(f"rvs-server did not become ready: {self.stderr()}")
 
