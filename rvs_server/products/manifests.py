@@ -19,6 +19,7 @@ import numpy as np
 
 from rvs_server import __version__
 from rvs_server.files import write_json_atomic
+from rvs_server.products.rasters import geotiff_grid
 from rvs_server.protocol import BadRequest, check_safe_name
 
 
@@ -77,8 +78,29 @@ class Product:
         """Write the manifest. Status: complete, interrupted (continue finishes it) or failed."""
         self.finished = True
         self.manifest["status"] = status
+        grids = self._grids()
+        if grids:
+            self.manifest["grids"] = grids
         self.manifest["finished"] = time.strftime("%Y-%m-%dT%H:%M:%S%z")
         return write_json_atomic(self.path / "product.json", self.manifest, default=_jsonable)
+
+
+    def _grids(self) -> dict[str, dict[str, Any]]:
+        """Where each GeoTIFF lies in the world, so a viewer can place maps, paths and markers without
+        opening the files: origin (south-west corner), cell, rows, cols, frame. Rows count northwards;
+        the files and pictures show them north up."""
+        grids = {}
+        for relative in self.manifest["files"]:
+            if not relative.endswith((".tif", ".tiff")):
+                continue
+            try:
+                spec = geotiff_grid(self.path / relative)
+            except (OSError, ValueError, IndexError, KeyError):  # not written (yet), or not a GeoTIFF
+                continue
+            if spec is not None:
+                grids[relative] = {"origin": [round(spec.origin_x, 6), round(spec.origin_y, 6)],  # to the micrometre
+                                   "cell": round(spec.cell, 6), "rows": spec.rows, "cols": spec.cols, "frame": "world"}
+        return grids
 
 
 class ProductPart:

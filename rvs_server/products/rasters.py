@@ -77,6 +77,19 @@ def write_geotiff(path: Path, grid_values: np.ndarray, grid: GridSpec, descripti
     return path
 
 
+def geotiff_grid(path: Path) -> GridSpec | None:
+    """The grid of a GeoTIFF written by write_geotiff, from its tags alone (no pixels read); None for a
+    TIFF without them."""
+    with tifffile.TiffFile(path) as tif:
+        page = tif.pages[0]
+        if 33550 not in page.tags or 33922 not in page.tags:
+            return None
+        scale, tie = page.tags[33550].value, page.tags[33922].value
+        rows, cols = page.shape[:2]
+    cell = float(scale[0])
+    return GridSpec(float(tie[3]), float(tie[4]) - rows * cell, cell, int(rows), int(cols))
+
+
 def read_geotiff(path: Path) -> tuple[np.ndarray, GridSpec]:
     """Inverse of write_geotiff: the grid values (rows northwards) and their GridSpec."""
     with tifffile.TiffFile(path) as tif:
