@@ -13,8 +13,7 @@ from rvs_server.dispatch import Module
 from rvs_server.protocol import BadRequest
 from toolbox.odometry.chain import wrap
 
-from .look import take_look
-from .odometer import Odometer, OrientFailed, odometer_of
+from .odometer import Odometer, OrientFailed, look_and_match
 from .record import write_failure, write_outcome
 from .settings import OrientSettings, Sensor
 
@@ -50,26 +49,34 @@ def orient(ctx: "JobContext", cfg: OrientConfig) -> dict[str, Any]:
     ctx.checkpoint({"product": product.name})   # continue after a break looks again into the same product
     rover = ctx.devices.rover
     rover.wait_for_world()
-    ctx.progress(10, f"pointing the {sensor} along the heading")
-    look = take_look(ctx, sensor, settings)
-    product.timing("acquisition", look.acquire_s)
-    ctx.save_truth(product)
-    ctx.safe_point()
-    ctx.progress(60, "matching against the keyframe")
-    odometer = odometer_of(ctx.server)
+    ctx.progress(10, f"pointing the {sensor} at the keyframe's ground")
     try:
-        outcome = odometer.orient(look, settings, rover.epoch, apply=cfg.apply)
+        sighting = look_and_match(ctx, sensor, settings, apply=cfg.apply)
     except OrientFailed as failed:
-        write_failure(product, look, failed)
+        ctx.save_truth(product)
+        product.timing("acquisition", failed.look.acquire_s)
+        write_failure(product, failed.look, failed)
         done = ctx.finish_product(product)
-        raise BadRequest(f"orient failed: {failed.failure.reason}: {failed.failure.sentence}; "
-                         f"product={done['product']}") from None
+        raise BadRequest(f"orient failed: {failed.failure.reason}: {failed.failure.sentence}"
+                         f"{_advice(failed.aim, settings, sensor)}; product={done['product']}") from None
+    ctx.save_truth(product)
+    outcome = sighting.outcome
+    product.timing("acquisition", sighting.look.acquire_s + (sighting.home.acquire_s if sighting.home else 0.0))
     product.timing("odometry", outcome.odometry_s)
     if cfg.apply:
         rover.pose_estimate = outcome.belief.pose
-    write_outcome(product, look, outcome, applied=cfg.apply)
+    write_outcome(product, sighting, applied=cfg.apply)
     ctx.progress(100, "written")
     return {**_reply(outcome), **ctx.finish_product(product)}
+
+
+def _advice(aim, settings: OrientSettings, sensor: str) -> str:
+    """What the rover should do when no pointing of the head could bring the keyframe back."""
+    if aim is None or aim.share >= settings.aim_share.of(sensor):
+        return ""
+    return (f" (no view the pan-tilt unit can take would see more than {100 * aim.share:.0f} % of the keyframe's "
+            f"ground after this manoeuvre: orient after each turn of at most {settings.reach_turn_deg:g} deg and "
+            f"each {settings.reach_m:g} m driven)")
 
 
 def _reply(outcome) -> dict[str, Any]:

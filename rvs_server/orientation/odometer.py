@@ -6,6 +6,12 @@ keyframe is about to be lost (so small steps do not add up the error of every st
 The chain starts anew (a keyframe with zero motion) on the first look after start, a `pose`, a
 `reset` (the rover device's epoch) or a change of sensor. A look that cannot be matched leaves the
 belief alone and becomes the keyframe at the dead-reckoned pose, with the uncertainty of being lost.
+
+The view is kept after any manoeuvre (`look_and_match`): before a look, the keyframe's points are
+carried to where dead reckoning puts the rover, and when the view along the heading would see too
+little of them the head is turned back to them (toolbox/odometry/aim.py). A look so pointed is
+matched there, and then the look along the heading becomes the keyframe at once (the rover has not
+moved: its belief is the same), because the next step goes that way.
 """
 from __future__ import annotations
 
@@ -16,14 +22,15 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from toolbox.geometry import RoverPose, invert
+from toolbox.geometry import RoverPose, apply, invert
+from toolbox.odometry.aim import Aim, View, choose_aim, keyframe_points
 from toolbox.odometry.chain import HeadingFix, PlanarBelief, carry, fuse_heading, planar, wrap
 from toolbox.odometry.depth import DepthOdometryParams, depth_motion, depth_picture, depth_turn
 from toolbox.odometry.estimate import MotionEstimate, OdometryFailure
 from toolbox.odometry.stereo import StereoOdometryParams, match_picture, stereo_keyframe, stereo_motion
 from toolbox.odometry.sun import MAX_ELEVATION_DEG, sun_heading, sun_heading_sigma
 
-from .look import Look, take_look
+from .look import Look, take_look, view_limits
 from .settings import OrientSettings
 
 if TYPE_CHECKING:
@@ -83,6 +90,8 @@ class OrientFailed(Exception):
     def __init__(self, failure: OdometryFailure, picture: np.ndarray | None, keyframe_number: int):
         super().__init__(str(failure))
         self.failure, self.picture, self.keyframe_number = failure, picture, keyframe_number
+        self.look: Look | None = None      # set by look_and_match
+        self.aim: Aim | None = None
 
 
 @dataclass
@@ -139,6 +148,49 @@ class Odometer:
         previous, self.last = self.last, belief
         return Outcome(belief, previous, False, rekeyed, number, motion, carried, fix, sources, odometry_s,
                        self._picture(key, look, motion))
+
+    def aim(self, estimate: RoverPose, epoch: int, sensor: str, settings: OrientSettings, mount: Any,
+            pan_range_deg: tuple[float, float], tilt_range_deg: tuple[float, float]) -> Aim:
+        """Where the next look should point: along the heading while that view would still see
+        `aim_share` of the keyframe's points, else back at them (the keyframe carried to
+        `estimate` by the same dead reckoning the match starts from)."""
+        home_tilt = settings.tilt_deg.of(sensor)
+        key, reference = self.keyframe, self.reference
+        if key is None or key.epoch != epoch or key.sensor != sensor or reference is None:
+            return Aim(0.0, home_tilt, 1.0, 1.0, False)
+        # key_from_rover now, by dead reckoning since the last look (LastLook.guess without the camera)
+        key_from_rover = (reference.key_from_camera @ invert(reference.camera_to_rover)
+                          @ invert(reference.estimate_after) @ _level(estimate, estimate.roll, estimate.pitch))
+        rover_from_key = invert(key_from_rover)
+        points_rover = apply(rover_from_key, keyframe_points(key.data))
+        # Interest points need the ground seen from nearly where the keyframe saw it; ICP on the
+        # TOF's points only needs the ground.
+        key_camera = rover_from_key[:3, 3] if sensor == "stereo" else None   # the keyframe camera, here
+        return choose_aim(points_rover, mount, self._view(key), home_tilt, pan_range_deg, tilt_range_deg,
+                          settings.aim_share.of(sensor), key_camera_rover=key_camera)
+
+    def rekey_here(self, look: Look, epoch: int) -> bool:
+        """Make `look`, taken where the last matched look was (only the head turned), the keyframe
+        with that look's belief; False (nothing changed) when it holds nothing to match."""
+        if self.last is None or self.reference is None:
+            return False
+        try:
+            data = self._frame(look)
+        except OdometryFailure:
+            return False
+        self.keyframes += 1
+        self.keyframe = Keyframe(look.sensor, epoch, data, self.last, look.camera_to_rover, self.keyframes)
+        self.reference = LastLook(np.eye(4), look.camera_to_rover, self.reference.estimate_after)
+        self.last_look = None
+        return True
+
+    def _view(self, key: Keyframe) -> View:
+        if key.sensor == "stereo":
+            c = key.data.camera
+            return View(c.width, c.height, c.fx, c.fy, c.cx, c.cy, self.stereo_params.max_depth_m)
+        d = key.data
+        h, w = d.valid.shape
+        return View(w, h, d.fx, d.fy, d.cx, d.cy, self.depth_params.max_range_m, margin_px=2.0)
 
     def shift(self, correction: np.ndarray) -> None:
         """Something better than odometry (navigate's alignment to its map) moved the estimate by
@@ -207,16 +259,26 @@ class Odometer:
 
     def _measure(self, key: Keyframe, look: Look, guess: np.ndarray, estimate: np.ndarray, reference: LastLook,
                  settings: OrientSettings) -> tuple[MotionEstimate, Any]:
-        """The look's motion from the key, checked against the wheels. A TOF look after a turn on the
-        spot that free ICP got wrong (it trades yaw for a sideways step) is registered again over the
-        rotation about the rover's centre alone: the wheels know it did not step."""
+        """The look's motion from the key, checked against the wheels. Where the first try fails after
+        a large turn, a second searches as wide as the wheels can be wrong: a 90 degree turn is
+        dead-reckoned to within 2-5 degrees, 30-70 pixels, past the usual window. A TOF look after a
+        turn on the spot that free ICP got wrong (it trades yaw for a sideways step) is registered
+        again over the rotation about the rover's centre alone: the wheels know it did not step."""
         try:
             motion, data = self._match(key, look, guess)
             self._check_wheels(key, look, motion, guess, estimate, reference, settings)
             return motion, data
         except OdometryFailure:
             since = planar(invert(reference.estimate_after) @ estimate)
-            if look.sensor != "tof" or math.hypot(since[0], since[1]) > settings.turn_on_spot_m:
+            driven, turned = math.hypot(since[0], since[1]), abs(math.degrees(wrap(since[2])))
+            if look.sensor == "stereo" and turned >= settings.wide_search_after_deg:
+                limit_deg = _wheel_limits(settings, driven, turned)[1]
+                radius = look.rig.left.fx * math.tan(math.radians(limit_deg))
+                motion, data = self._match(key, look, guess, max(radius, self.stereo_params.search_radius_px),
+                                           warp=True)
+                self._check_wheels(key, look, motion, guess, estimate, reference, settings)
+                return motion, data
+            if look.sensor != "tof" or driven > settings.turn_on_spot_m:
                 raise
         pivot = invert(look.camera_to_rover)[:3, 3]          # the rover's centre in the camera's frame
         motion = depth_turn(key.data, look.depth, pivot, self.depth_params, guess)
@@ -235,8 +297,7 @@ class Odometer:
                             for m in (motion.key_from_new, guess))
         off_m = math.hypot(*(measured[:2] - wheels[:2]))
         off_deg = abs(math.degrees(wrap(measured[2] - wheels[2])))
-        limit_m = settings.wheels_m + settings.wheels_per_m * driven
-        limit_deg = settings.wheels_deg + settings.wheels_deg_per_deg * turned + settings.wheels_deg_per_m * driven
+        limit_m, limit_deg = _wheel_limits(settings, driven, turned)
         if off_m > limit_m or off_deg > limit_deg:
             raise OdometryFailure("diverged", f"the {look.sensor} motion departs from the wheels' by {off_m:.2f} m and "
                                   f"{off_deg:.1f} deg after {driven:.2f} m and {turned:.1f} deg: at most {limit_m:.2f} m "
@@ -247,9 +308,12 @@ class Odometer:
             return stereo_keyframe(look.left, look.right, look.rig, self.stereo_params)
         return look.depth
 
-    def _match(self, key: Keyframe, look: Look, guess: np.ndarray) -> tuple[MotionEstimate, Any]:
+    def _match(self, key: Keyframe, look: Look, guess: np.ndarray, search_radius_px: float | None = None,
+               warp: bool = False) -> tuple[MotionEstimate, Any]:
         if look.sensor == "stereo":
-            return stereo_motion(key.data, look.left, look.right, look.rig, self.stereo_params, guess=guess)
+            params = self.stereo_params if search_radius_px is None else self.stereo_params.model_copy(
+                update={"search_radius_px": search_radius_px})
+            return stereo_motion(key.data, look.left, look.right, look.rig, params, guess=guess, warp=warp)
         return depth_motion(key.data, look.depth, self.depth_params, guess=guess), look.depth
 
     def _picture(self, key: Keyframe, look: Look, motion: MotionEstimate | None) -> np.ndarray | None:
@@ -281,6 +345,12 @@ class Odometer:
                 or abs(math.degrees(wrap(here.heading - there.heading))) > settings.max_keyframe_deg)
 
 
+def _wheel_limits(settings: OrientSettings, driven: float, turned: float) -> tuple[float, float]:
+    """How far (m, deg) dead reckoning may be off after `driven` metres and `turned` degrees."""
+    return (settings.wheels_m + settings.wheels_per_m * driven,
+            settings.wheels_deg + settings.wheels_deg_per_deg * turned + settings.wheels_deg_per_m * driven)
+
+
 def _level(pose: RoverPose, roll: float, pitch: float) -> np.ndarray:
     """The pose with the inclinometer's roll and pitch: those are absolute, odometry's drift."""
     return RoverPose(pose.x, pose.y, pose.z, pose.heading, roll, pitch).to_world()
@@ -290,11 +360,43 @@ def odometer_of(server: "Host") -> Odometer:
     return server.state_of("orientation")
 
 
+@dataclass(frozen=True)
+class Sighting:
+    """A look pointed where its keyframe is, matched, and (when it was pointed away from the
+    heading) the look along the heading that became the keyframe after it."""
+
+    look: Look
+    aim: Aim
+    outcome: Outcome
+    home: Look | None
+
+
+def look_and_match(ctx: "JobContext", sensor: str, settings: OrientSettings, apply: bool = True) -> Sighting:
+    """Aim, look, match; after a pointed look, re-key along the heading. OrientFailed (with `look`
+    and `aim` set on it) when the look cannot be matched; the caller applies the belief."""
+    rover, odometer = ctx.devices.rover, odometer_of(ctx.server)
+    mount = ctx.server.calibration().mounts["left" if sensor == "stereo" else "tof"]
+    pan_range, tilt_range = view_limits(ctx)
+    aim = odometer.aim(rover.pose_estimate, rover.epoch, sensor, settings, mount, pan_range, tilt_range)
+    look = take_look(ctx, sensor, settings, aim.pan_deg, aim.tilt_deg)
+    try:
+        outcome = odometer.orient(look, settings, rover.epoch, apply=apply)
+    except OrientFailed as failed:
+        failed.look, failed.aim = look, aim
+        raise
+    home = None
+    if aim.pointed and not outcome.keyframe:
+        ctx.safe_point()
+        home = take_look(ctx, sensor, settings)
+        if not odometer.rekey_here(home, rover.epoch):
+            home = None
+    return Sighting(look, aim, outcome, home)
+
+
 def orient_here(ctx: "JobContext", sensor: str, settings: OrientSettings) -> Outcome:
     """One look matched by the server's odometer, the belief made the rover's pose estimate: for jobs
     that orient between their moves (navigate, route-follow). OrientFailed leaves the estimate as
     dead reckoning has it."""
-    rover = ctx.devices.rover
-    outcome = odometer_of(ctx.server).orient(take_look(ctx, sensor, settings), settings, rover.epoch)
-    rover.pose_estimate = outcome.belief.pose
+    outcome = look_and_match(ctx, sensor, settings).outcome
+    ctx.devices.rover.pose_estimate = outcome.belief.pose
     return outcome

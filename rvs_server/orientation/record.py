@@ -12,7 +12,7 @@ from toolbox.colour import upscale, with_title
 from toolbox.odometry.chain import PlanarBelief
 
 from .look import Look
-from .odometer import OrientFailed, Outcome
+from .odometer import OrientFailed, Sighting
 
 
 def _belief(belief: PlanarBelief | None) -> dict[str, Any] | None:
@@ -35,7 +35,15 @@ def _look(look: Look) -> dict[str, Any]:
                                                           "sigma_deg": math.degrees(look.sun.sigma)}}
 
 
-def write_outcome(product: Any, look: Look, outcome: Outcome, applied: bool) -> None:
+def _aim(aim: Any) -> dict[str, Any] | None:
+    if aim is None:
+        return None
+    return {"pan_deg": aim.pan_deg, "tilt_deg": aim.tilt_deg, "pointed": aim.pointed,
+            "expected_share": round(aim.share, 3), "along_heading_share": round(aim.along_share, 3)}
+
+
+def write_outcome(product: Any, sighting: Sighting, applied: bool) -> None:
+    look, outcome = sighting.look, sighting.outcome
     motion = outcome.motion
     fix = outcome.sun
     data = {"look": _look(look), "applied": applied, "keyframe": outcome.keyframe, "rekeyed": outcome.rekeyed,
@@ -48,20 +56,22 @@ def write_outcome(product: Any, look: Look, outcome: Outcome, applied: bool) -> 
                 "method": motion.method},
             "sun": None if fix is None else {"heading_deg": math.degrees(fix.heading), "sigma_deg": math.degrees(fix.sigma),
                                              "innovation_sigmas": fix.innovation_sigmas, "used": fix.used},
-            "odometry_ms": 1000.0 * outcome.odometry_s}
+            "odometry_ms": 1000.0 * outcome.odometry_s, "aim": _aim(sighting.aim),
+            "rekeyed_along_heading": sighting.home is not None}
     product.write_json("orient.json", data, "the rover's pose after this look, how it was measured and how sure it is")
+    pointed = f", head at pan {look.pan_tilt_deg[0]:.0f}" if sighting.aim.pointed else ""
     if outcome.keyframe:
         title = f"keyframe {outcome.keyframe_number}"
     else:
         title = (f"from keyframe {outcome.keyframe_number}: {motion.inliers} of {motion.matches} agree, "
-                 f"{'+'.join(outcome.sources)}")
+                 f"{'+'.join(outcome.sources)}{pointed}")
     _picture(product, outcome.picture, look.sensor, title)
 
 
 def write_failure(product: Any, look: Look, failed: OrientFailed) -> None:
     product.write_json("orient.json", {"look": _look(look), "failed": {"reason": failed.failure.reason,
                                                                        "sentence": failed.failure.sentence},
-                                       "keyframe_number": failed.keyframe_number},
+                                       "keyframe_number": failed.keyframe_number, "aim": _aim(failed.aim)},
                        "why this look could not be matched against the keyframe (the pose estimate is unchanged)")
     _picture(product, failed.picture, look.sensor, f"failed against keyframe {failed.keyframe_number}: "
              f"{failed.failure.reason}")

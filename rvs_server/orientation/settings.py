@@ -17,6 +17,17 @@ class OrientSettings(Settings):
     sensor: Sensor = Field("stereo", description="the sensor orient looks with unless --sensor says")
     tilt_deg: PerSensor[Tilt] = Field(PerSensor[Tilt](stereo=-20.0, tof=-30.0), description="per sensor, the tilt "
                                       "while orienting (pan 0: along the heading)")
+    aim_share: PerSensor[Share] = Field(
+        PerSensor[Share](stereo=0.3, tof=0.3), description="per sensor: when the look along the heading would see "
+        "less than this share of the keyframe's points (dead reckoning's guess), the head is turned back to them")
+    wide_search_after_deg: float = Field(10.0, ge=0, description="stereo: after a turn this large since the last "
+                                         "look, a look that fails is matched again in a window as wide as the wheels' "
+                                         "heading can be off (wheels_deg ...)")
+    reach_turn_deg: float = Field(90.0, gt=0, le=180, description="the largest turn (in place, or with up to "
+                                  "reach_m forward) after which a pointed look is known to find the keyframe again; "
+                                  "a refusal past it advises looking at least this often")
+    reach_m: float = Field(1.5, gt=0, description="the longest drive after which a pointed look is known to find the "
+                           "keyframe again")
     tof_frames: int = Field(1, ge=1, le=20, description="SR4000 frames averaged per look")
     rekey_overlap: PerSensor[Share] = Field(
         PerSensor[Share](stereo=0.35, tof=0.9), description="per sensor: the new look becomes the keyframe when less "

@@ -15,6 +15,12 @@ stereo_motion's steps, each a small function below:
   4. Gauss-Newton on the inliers' reprojection errors both ways (keyframe points in the new
      image, the new pair's points of the same tracks in the keyframe image), with the rig's
      disparity offset, and the covariance from the Jacobian
+With `warp` (a look after a manoeuvre: the head turned back to ground it saw from elsewhere), steps
+2 and 3 match in the new left image warped into the keyframe's view by the ground plane's homography
+under the guess (the plane fitted to the keyframe's points): seen from 1.5 m away and 45 degrees
+round, the grazing ground's patches shear and turn past what descriptors and patch fits follow, and
+the warp undoes most of it (rocks stand out of the plane, by a few pixels the patch fit takes up).
+Matches found there are carried back to the new image's own pixels through the same homography.
 Frames and covariance follow toolbox.odometry.estimate (key_from_new, right perturbation). Pixels
 are raw (distorted) image pixels; toolbox.camera.project and cv2's distortion vector handle k1, k2.
 """
@@ -148,15 +154,18 @@ def stereo_keyframe(left: np.ndarray, right: np.ndarray, rig: StereoRig,
 
 def stereo_motion(key: StereoKeyframe, left: np.ndarray, right: np.ndarray, rig: StereoRig,
                   params: StereoOdometryParams = StereoOdometryParams(),
-                  guess: np.ndarray | None = None) -> tuple[MotionEstimate, StereoKeyframe]:
+                  guess: np.ndarray | None = None, warp: bool = False) -> tuple[MotionEstimate, StereoKeyframe]:
     """The left camera's motion since the keyframe (key_from_new), and the new pair as a keyframe.
-    `guess` (4 x 4 key_from_new, from dead reckoning) narrows the search; None searches everywhere."""
-    # 1. The new pair as a keyframe.
+    `guess` (4 x 4 key_from_new, from dead reckoning) narrows the search; None searches everywhere.
+    `warp` (with a guess): match in the new image warped into the keyframe's view by the ground."""
+    # 1. The new pair as a keyframe; with `warp`, the new left image as the keyframe would see it.
     new = stereo_keyframe(left, right, rig, params)
+    homography = ground_homography(key, guess) if warp and guess is not None else None
+    view = new if homography is None else warped_view(left, homography, params)
     # 2. A coarse motion from descriptor matches (in the guess's window) by PnP in RANSAC; where
     #    descriptors find too little (a rock close ahead changes every patch), the guess itself.
     try:
-        coarse = coarse_motion(key, new, params, guess)
+        coarse = coarse_motion(key, view, params, guess, homography)
     except OdometryFailure as failure:
         if guess is None:
             raise
@@ -168,7 +177,7 @@ def stereo_motion(key: StereoKeyframe, left: np.ndarray, right: np.ndarray, rig:
     #    image for the backward residuals.
     tracking = params if descriptors_failed is None else params.model_copy(
         update={"track_shift_px": params.search_radius_px})
-    index, pixels_new = guided_tracks(key, left, coarse, tracking)
+    index, pixels_new = guided_tracks(key, left, coarse, tracking, homography, view.image)
     points_new = stereo_points(pixels_new, left, right, rig, params)
     key_from_new, inliers = pnp_ransac(key.points[index], pixels_new, key.camera, params,
                                        params.ransac_threshold_px)
@@ -192,21 +201,67 @@ def stereo_motion(key: StereoKeyframe, left: np.ndarray, right: np.ndarray, rig:
 
 
 def coarse_motion(key: StereoKeyframe, new: StereoKeyframe, params: StereoOdometryParams,
-                  guess: np.ndarray | None) -> np.ndarray:
+                  guess: np.ndarray | None, homography: np.ndarray | None = None) -> np.ndarray:
     """key_from_new from descriptor matches by PnP in RANSAC at the coarse threshold; OdometryFailure
-    (no-overlap, few-inliers) when they are too few."""
-    pairs = descriptor_matches(key, new, params, guess)
+    (no-overlap, few-inliers) when they are too few. With a `homography`, `new` holds the features
+    of the warped view, carried back to the new image's pixels for the PnP."""
+    pairs = descriptor_matches(key, new, params, guess, homography)
     usable = int(key.with_depth.sum())
     if len(pairs) < params.min_inliers or len(pairs) < params.min_overlap * usable:
         raise OdometryFailure("no-overlap", f"{len(pairs)} of the keyframe's {usable} features with a depth "
                                             f"found again ({len(pairs) / max(usable, 1):.0%}): at least "
                                             f"{params.min_inliers} and {params.min_overlap:.0%} needed")
-    coarse, inliers = pnp_ransac(key.points[pairs[:, 0]], new.pixels[pairs[:, 1]], key.camera, params,
-                                 params.coarse_threshold_px)
+    pixels = new.pixels[pairs[:, 1]].astype(np.float64)
+    if homography is not None:
+        pixels = apply_homography(homography, pixels)
+    coarse, inliers = pnp_ransac(key.points[pairs[:, 0]], pixels, key.camera, params, params.coarse_threshold_px)
     if inliers.sum() < params.coarse_min_inliers:
         raise OdometryFailure("few-inliers", f"{len(pairs)} descriptor matches, {int(inliers.sum())} inliers: "
                                              f"at least {params.coarse_min_inliers} needed")
     return coarse
+
+
+# ---------------------------------------------------------------------------------- the ground's warp
+def ground_homography(key: StereoKeyframe, key_from_new: np.ndarray, inlier_m: float = 0.15) -> np.ndarray | None:
+    """3 x 3: a keyframe pixel to the new image's pixel of the same ground point under the motion,
+    through the plane fitted to the keyframe's points (least squares, refitted on those within
+    `inlier_m` of the first fit); None with too few points or a camera on the plane."""
+    points = key.points[key.with_depth]
+    if len(points) < 10:
+        return None
+    for _ in range(2):
+        centre = points.mean(axis=0)
+        normal = np.linalg.svd(points - centre, full_matrices=False)[2][2]
+        near = np.abs((points - centre) @ normal) <= inlier_m
+        if near.sum() >= 10:
+            points = points[near]
+    distance = float(normal @ centre)                 # the plane: normal . X = distance (keyframe camera)
+    if abs(distance) < 0.1:
+        return None
+    new_from_key = invert(key_from_new)
+    rotation, translation = new_from_key[:3, :3], new_from_key[:3, 3]
+    k = key.camera.matrix
+    homography = k @ (rotation + np.outer(translation, normal) / distance) @ np.linalg.inv(k)
+    return homography / homography[2, 2]
+
+
+def apply_homography(homography: np.ndarray, pixels: np.ndarray) -> np.ndarray:
+    """(N, 2) pixels mapped through a 3 x 3 homography."""
+    pixels = np.asarray(pixels, dtype=np.float64).reshape(-1, 2)
+    mapped = np.column_stack([pixels, np.ones(len(pixels))]) @ homography.T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return mapped[:, :2] / mapped[:, 2:3]
+
+
+def warped_view(left: np.ndarray, homography: np.ndarray, params: StereoOdometryParams) -> StereoKeyframe:
+    """The new left image resampled at the homography's image of each keyframe pixel (what the
+    keyframe camera would have seen of the ground from here), and its features. Only pixels,
+    descriptors and image are meaningful (no depth)."""
+    height, width = np.shape(left)
+    image = cv2.warpPerspective(np.asarray(left), homography, (width, height),
+                                flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
+    pixels, descriptors = bucketed_features(image, params.features, params.grid, params.fast_threshold)
+    return StereoKeyframe(pixels, descriptors, np.full((len(pixels), 3), np.nan), None, image)
 
 
 # ---------------------------------------------------------------------------------- stereo depth
@@ -309,29 +364,33 @@ def predicted_pixels(key: StereoKeyframe, key_from_new: np.ndarray) -> np.ndarra
 
 
 def predicted_window(key: StereoKeyframe, new_pixels: np.ndarray, guess: np.ndarray | None,
-                     radius: float) -> np.ndarray | None:
+                     radius: float, homography: np.ndarray | None = None) -> np.ndarray | None:
     """(N_key, N_new) bool: the new features within `radius` pixels of where the guess puts each
-    keyframe feature with depth (others: none). None without a guess: everything is a candidate."""
+    keyframe feature with depth (others: none); with a `homography`, in the warped view. None
+    without a guess: everything is a candidate."""
     if guess is None:
         return None
     predicted = predicted_pixels(key, guess)
+    if homography is not None:
+        predicted = apply_homography(np.linalg.inv(homography), predicted)
     distance = np.linalg.norm(predicted[:, None, :] - new_pixels[None, :, :], axis=2)
     with np.errstate(invalid="ignore"):
         return distance <= radius
 
 
 def descriptor_matches(key: StereoKeyframe, new: StereoKeyframe, params: StereoOdometryParams,
-                       guess: np.ndarray | None) -> np.ndarray:
+                       guess: np.ndarray | None, homography: np.ndarray | None = None) -> np.ndarray:
     """(M, 2) index pairs (keyframe feature with depth, new feature) by descriptor, in the guess's
     window around each prediction if there is a guess."""
-    allowed = predicted_window(key, new.pixels, guess, params.search_radius_px)
+    allowed = predicted_window(key, new.pixels, guess, params.search_radius_px, homography)
     depth = key.with_depth[:, None]
     allowed = depth if allowed is None else allowed & depth
     return match_descriptors(key.descriptors, new.descriptors, allowed, params.ratio, params.max_hamming)
 
 
 def guided_tracks(key: StereoKeyframe, new_left: np.ndarray, key_from_new: np.ndarray,
-                  params: StereoOdometryParams) -> tuple[np.ndarray, np.ndarray]:
+                  params: StereoOdometryParams, homography: np.ndarray | None = None,
+                  warped: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(keyframe indices, their pixels in the new left image): every keyframe point with depth that
     the coarse motion puts inside the new image, its keyframe patch fitted there by Lucas-Kanade.
 
@@ -345,9 +404,15 @@ def guided_tracks(key: StereoKeyframe, new_left: np.ndarray, key_from_new: np.nd
         inside = (key.with_depth & (predicted[:, 0] >= margin) & (predicted[:, 0] < key.camera.width - margin)
                   & (predicted[:, 1] >= margin) & (predicted[:, 1] < key.camera.height - margin))
     index = np.flatnonzero(inside)
-    tracked, ok = refine_positions(key.image, key.pixels[index], new_left, predicted[index].astype(np.float32),
+    if homography is None:
+        tracked, ok = refine_positions(key.image, key.pixels[index], new_left, predicted[index].astype(np.float32),
+                                       window=params.track_window, max_shift=params.track_shift_px, levels=2)
+        return index[ok], tracked[ok].astype(np.float64)
+    # In the warped view the patches keep their keyframe shape; the fit found there, carried back.
+    start = apply_homography(np.linalg.inv(homography), predicted[index]).astype(np.float32)
+    tracked, ok = refine_positions(key.image, key.pixels[index], warped, start,
                                    window=params.track_window, max_shift=params.track_shift_px, levels=2)
-    return index[ok], tracked[ok].astype(np.float64)
+    return index[ok], apply_homography(homography, tracked[ok])
 
 
 # ---------------------------------------------------------------------------------- pose
