@@ -16,7 +16,7 @@ Positive = Annotated[float, Field(gt=0)]
 
 class TrackingSettings(Settings):
     sensor: Sensor = Field("tof", description="the sensor that searches and tracks unless --sensor says")
-    rate_hz: float = Field(10.0, gt=0, le=30, description="track3d-start: frames per second")
+    rate_hz: float = Field(12.0, gt=0, le=30, description="track3d-start: frames per second")
     # -- the search ---------------------------------------------------------------------------
     pan_deg: Range = Field((-150.0, 150.0), description="track3d-detect sweeps the pan over this unless --pan "
                            "says (degrees, positive right)")
