@@ -10,7 +10,8 @@ it, and the GNC's `pose` command replaces it. Two drives sit behind one interfac
                here only), then the job waits for the GNC's `pose X,Y,HEADING`
 
 Either way the estimate's roll and pitch after the move are what the rover can measure where it
-stands (`RoverDevice.settle`), never the ones from before it.
+stands (`RoverDevice.settle`), never the ones from before it, and its height follows the ground it
+drove over (`climb` along the inclinometer's pitch, or the newest map's height under the wheels).
 
 `RoverDevice.drive` is the one place that picks between them from a command family's setting
 (auto | simulated | gnc). The simulator's truth (the true pose, the world's extent, the forward
@@ -33,7 +34,7 @@ from drivers.sim.motion import dead_reckon, turn_and_distance
 from drivers.sim.testbed import INCLINOMETER_NOISE_DEG
 from toolbox.geometry import RoverPose
 from toolbox.grid import GridSpec
-from toolbox.mapping.attitude import attitude_on_ground
+from toolbox.mapping.attitude import attitude_on_ground, height_on_ground
 
 from ..protocol import BadRequest, DeviceError, Timeout
 from .sharing import DeviceSharing
@@ -102,6 +103,18 @@ class DriveGuard(ABC):
         """The rover stopped for this guard: `truth` is the simulator's view of the stop, if any."""
 
 
+def climb(distance: float, pitch_before: float, pitch_after: float) -> float:
+    """The rise (metres) of the rover's origin over one drive segment of `distance` metres along
+    its heading (negative: backward), with the body's pitch read before and after it (radians, nose
+    down positive, as RoverPose: the body's x axis climbs at -tan(pitch) per horizontal metre).
+
+    Why: dead reckoning carries x, y and heading only, and every map places its points through the
+    estimate's height; a drive up a 12-degree slope kept the height from before it and built the
+    next map 0.21 m low per metre driven. The segments are short (sample_m, a few cm), so the mean
+    of the two readings follows curved ground; the distance is horizontal, as dead_reckon's is."""
+    return -distance * math.tan(0.5 * (pitch_before + pitch_after))
+
+
 def action_motion(kind: str, value: float) -> tuple[float, float]:
     """(turn rad, distance m) of an action: turn by value, forward or backward value metres."""
     turn = value if kind == "turn" else 0.0
@@ -163,8 +176,9 @@ class SimulatedDrive(Drive):
              incline: bool = False) -> Moved:
         """Turn, then drive (negative: backward), sample by sample in simulated time, so a guard can
         stop the rover between two samples (DriveStopped). The estimate is dead-reckoned from start
-        (default: the estimate now) as the samples go, and takes roll and pitch from the
-        inclinometer at the end (incline: on the drive's noise stream, as navigate's legs do)."""
+        (default: the estimate now) as the samples go, its height climbing along the pitch the
+        inclinometer reads at each sample (climb), and takes roll and pitch from the inclinometer at
+        the end (incline: on the drive's noise stream, as navigate's legs do)."""
         rover, testbed = self.rover, self.rover.testbed
         rover.hand_over_sensors()
         start = start or rover.pose_estimate
@@ -178,12 +192,13 @@ class SimulatedDrive(Drive):
         turn_s = abs(math.degrees(turn)) / speed.turn_deg_s / planned.turn_steps
         drive_s = abs(distance) / speed.drive_m_s / max(1, drive_steps)
         done_turn, done_distance, contacts = 0.0, 0.0, 0
+        z, pitch = start.z, None   # pitch: the inclinometer's last reading while driving (its own stream)
         started_s = job.clock.now() if rover.guard is not None else 0.0
         true_path: list[list[float]] = []
         for k, true in enumerate(planned.poses[1:], start=1):
             driving = k > planned.turn_steps
             if driving and rover.guard is not None and distance != 0:
-                here = self._estimate(start, done_turn, done_distance, start.roll, start.pitch)
+                here = self._estimate(start, done_turn, done_distance, z)
                 why = rover.guard.check(job, here, direction, abs(distance - done_distance), speed.drive_m_s,
                                         started_s)
                 if why is not None:
@@ -191,29 +206,34 @@ class SimulatedDrive(Drive):
                     moved = Moved(here, (done_turn, done_distance), 1, contacts, true_path)
                     rover.guard.stopped(why, here, rover.stop_truth(direction, pace.step_height_m))
                     raise DriveStopped(rover.guard.name, why, moved)
+            if driving and pitch is None:
+                pitch = testbed.inclinometer()[1]
             job.sleep(drive_s if driving else turn_s)
             try:
                 contacts += int(testbed.step_rover(tuple(true), pace.step_height_m))
             except ValueError as exc:   # the simulated world ends (a real rover's ground does not)
-                rover.pose_estimate = rover.settle(self._estimate(start, done_turn, done_distance, start.roll,
-                                                                  start.pitch))
+                rover.pose_estimate = rover.settle(self._estimate(start, done_turn, done_distance, z))
                 raise WorldEdge(f"the simulated rover would leave the simulated world: {exc}") from None
             true_path.append([float(v) for v in true])
             if driving:
+                now = testbed.inclinometer()[1]
+                z += climb(distance / drive_steps, pitch, now)
+                pitch = now
                 done_distance = distance * (k - planned.turn_steps) / drive_steps
             else:
                 done_turn = turn * k / planned.turn_steps
-            rover.pose_estimate = self._estimate(start, done_turn, done_distance, start.roll, start.pitch)
+            rover.pose_estimate = self._estimate(start, done_turn, done_distance, z)
         # The attitude where it stopped, as measured (navigate's legs read the inclinometer on the
         # drive's own noise stream, as always; other moves on the inclinometer's, so drive errors stay).
-        estimate = rover.settle(self._estimate(start, turn, distance, start.roll, start.pitch), drive_stream=incline)
+        estimate = rover.settle(self._estimate(start, turn, distance, z), drive_stream=incline)
         rover.pose_estimate = estimate
         return Moved(estimate, (turn, distance), 1, contacts, true_path)
 
     @staticmethod
-    def _estimate(start: RoverPose, turn: float, distance: float, roll: float, pitch: float) -> RoverPose:
+    def _estimate(start: RoverPose, turn: float, distance: float, z: float) -> RoverPose:
+        """Dead-reckoned from start at height z; roll and pitch from before until settle."""
         x, y, heading = dead_reckon((start.x, start.y, start.heading), turn, distance)
-        return RoverPose(x, y, start.z, heading, roll, pitch)
+        return RoverPose(x, y, z, heading, start.roll, start.pitch)
 
     def true_pose(self) -> list[float] | None:
         return self.rover.true_pose()
@@ -359,20 +379,24 @@ class RoverDevice:
         """`estimate` (a pose a drive just reached, or the GNC's report) with the roll and pitch the
         rover can measure where it stands: the inclinometer when it has one (the simulated rover;
         drive_stream: read on the drive's noise stream, as navigate's legs always have); with none,
-        the plane of the terrain under its wheels in `ground` (called only then: the newest DEM's
-        heights, or None); else the old ones.
+        the plane of the terrain under its wheels in `ground` (the newest DEM's heights, or None);
+        else the old ones. Its height is the ground's under the wheels when `ground` is given and
+        knows it (a pose whose drive the server did not see); a simulated drive climbed it (climb).
 
         Why: dead reckoning and the GNC's `pose` carry x, y and heading only, yet every map places
-        its points through the estimate's whole attitude (mapping/steps.py camera_to_world), so the
-        roll and pitch from before a move tilt the next map (dem-update-tof) by the attitude's change:
-        a turn on a slope swaps roll into pitch, driving onto a slope tilts the body."""
+        its points through the estimate's whole pose (mapping/steps.py camera_to_world), so the
+        roll, pitch and height from before a move tilt and shift the next map (dem-update-tof) by
+        their change: a turn on a slope swaps roll into pitch, driving onto a slope tilts the body
+        and lifts it."""
+        dem = ground() if ground is not None else None
         if self.simulated:
             roll, pitch = self.testbed.inclination() if drive_stream else self.testbed.inclinometer()
-            return replace(estimate, roll=roll, pitch=pitch)
-        dem = ground() if ground is not None else None
-        tilt = None if dem is None else attitude_on_ground(*dem, estimate.x, estimate.y, estimate.heading,
-                                                           GROUND_RADIUS_M)
-        return estimate if tilt is None else replace(estimate, roll=tilt[0], pitch=tilt[1])
+            estimate = replace(estimate, roll=roll, pitch=pitch)
+        elif dem is not None and (tilt := attitude_on_ground(*dem, estimate.x, estimate.y, estimate.heading,
+                                                             GROUND_RADIUS_M)) is not None:
+            estimate = replace(estimate, roll=tilt[0], pitch=tilt[1])
+        z = None if dem is None else height_on_ground(*dem, estimate.x, estimate.y, GROUND_RADIUS_M)
+        return estimate if z is None else replace(estimate, z=z)
 
     def inclination(self) -> tuple[float, float]:
         """Roll and pitch now: the simulated rover's inclinometer; else the estimate's (settled after

@@ -149,19 +149,20 @@ def test_reinit_keeps_the_estimate_and_the_pose_reports(devices):
     assert new.pose_estimate == RoverPose(3.0, 4.0) and new.reports == 2
 
 
-def test_settle_without_an_inclinometer_takes_the_attitude_from_the_mapped_ground_under_the_wheels(devices):
+def test_settle_without_an_inclinometer_takes_the_attitude_and_height_from_the_mapped_ground_under_the_wheels(devices):
     rover = devices(REAL).rover
     spec = GridSpec.covering((-2.0, 2.0), (-2.0, 2.0), 0.05)
     xs, ys = spec.centres()
     a, b = math.tan(math.radians(8.0)), math.tan(math.radians(-5.0))     # rises east 8 deg, falls north 5 deg
     heights = (a * xs[None, :] + b * ys[:, None]).astype("float32")
     heights[:, : spec.cols // 2 - 4] = float("nan")                         # a half mapped: enough under the wheels
-    old = RoverPose(0.3, -0.2, 0.0, math.radians(35.0), 0.01, -0.02)
+    old = RoverPose(0.3, -0.2, 1.0, math.radians(35.0), 0.01, -0.02)        # 1 m: the height from before
     settled = rover.settle(old, ground=lambda: (heights, spec))
     normal = np.array([-a, -b, 1.0]) / math.sqrt(a * a + b * b + 1.0)
     up = rotation_rpy(settled.roll, settled.pitch, settled.heading)[:, 2]
     assert math.degrees(math.acos(min(1.0, float(up @ normal)))) < 0.05
-    assert (settled.x, settled.y, settled.z, settled.heading) == (old.x, old.y, old.z, old.heading)
+    assert (settled.x, settled.y, settled.heading) == (old.x, old.y, old.heading)
+    assert settled.z == pytest.approx(a * old.x + b * old.y, abs=0.005)   # the ground's height under the wheels
     assert rover.settle(old, ground=lambda: None) == old                   # no map: the old attitude
     assert rover.settle(old, ground=lambda: (heights * float("nan"), spec)) == old   # nothing mapped there
     assert rover.settle(old) == old

@@ -1,11 +1,13 @@
 """A map made after a drive on a slope: the estimate's roll and pitch are the ones where the rover
-stands (the inclinometer), so dem-update-tof's new cells agree with the truth as on flat ground."""
+stands (the inclinometer) and its height climbed along the pitch it read on the way, so
+dem-update-tof's new cells agree with the truth as on flat ground."""
 from __future__ import annotations
 
 import json
 import math
 
 import numpy as np
+import pytest
 
 from rvs_server.products.rasters import read_geotiff
 from toolbox.grid import GridSpec
@@ -68,4 +70,31 @@ def test_a_map_after_a_turn_on_a_slope_is_level_with_the_truth(server_factory):
     dem = read_geotiff(after / "dem.tif")[0]
     truth = read_geotiff(after / "truth" / "height.tif")[0]
     error = (dem - truth)[new]
+    assert np.sqrt(np.mean(error ** 2)) < FLAT_GROUND_RMS_M
+
+
+def new_cells_error(after, before) -> np.ndarray:
+    """The update's height error (estimate - truth) on the cells the map before it did not know."""
+    new = new_cells(after, before)
+    assert new.sum() > 500
+    dem = read_geotiff(after / "dem.tif")[0]
+    truth = read_geotiff(after / "truth" / "height.tif")[0]
+    return (dem - truth)[new]
+
+
+@pytest.mark.parametrize("turn", [90, -90], ids=["uphill", "downhill"])
+def test_a_map_after_driving_up_or_down_a_slope_is_at_the_true_height(server_factory, turn):
+    # Facing up (north) or down (south) the 12-degree plane, 1.5 m forward rises or falls 0.32 m:
+    # the map was built that much off when the drive kept the height from before it.
+    server = server_factory(configs={"world.toml": SLOPE_WORLD})
+    products = server.data_dir / "products"
+    with server.connect() as c:
+        pairs(c.command("dem-full-tof --pan -40:40 --output before", timeout=300))
+        assert " OK " in c.command(f"drive --turn {turn}", timeout=300)
+        assert " OK " in c.command("drive --forward 1.5", timeout=300)
+        pairs(c.command("dem-update-tof --pan -30:30 --output after", timeout=300))
+    before, after = products / "before", products / "after"
+    assert tilt_error_deg(after) < 0.5
+    error = new_cells_error(after, before)
+    assert abs(error.mean()) < FLAT_GROUND_RMS_M / 2   # 0.32 m low uphill (high downhill) with the old height
     assert np.sqrt(np.mean(error ** 2)) < FLAT_GROUND_RMS_M

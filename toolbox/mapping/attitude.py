@@ -1,4 +1,5 @@
-"""The attitude a rover takes on mapped ground: the plane of the heights under its wheels."""
+"""The attitude a rover takes on mapped ground: the plane of the heights under its wheels, and
+their height."""
 from __future__ import annotations
 
 import math
@@ -33,3 +34,11 @@ def attitude_on_ground(heights: np.ndarray, spec: GridSpec, x: float, y: float, 
     roll = math.asin(float(np.clip(-left, -1.0, 1.0)))
     pitch = math.atan2(forward, normal[2])
     return roll, pitch
+
+
+def height_on_ground(heights: np.ndarray, spec: GridSpec, x: float, y: float, radius: float) -> float | None:
+    """The median of the known heights within `radius` of (x, y): where a rover's origin (the mean
+    of its wheel contacts) stands on the map; None when none is known there."""
+    xs, ys = spec.centres()
+    near = (np.hypot(xs[None, :] - x, ys[:, None] - y) <= radius) & np.isfinite(heights)
+    return float(np.median(heights[near])) if near.any() else None
