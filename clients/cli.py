@@ -10,6 +10,9 @@
                                            lines are run one after the other.
     rvs mission run FILE [--set N=V ...]   run a mission file (see clients/mission.py)
     rvs mission check FILE [--set N=V ...] validate it with `check`; nothing moves
+    rvs campaign FILE [--workers N | --scheduler ADDRESS] [--out DIR]
+                                           run a campaign on Dask, each run on its own server
+                                           (see clients/campaign.py); rerunning resumes it
 
 The text transport at 127.0.0.1:7400 is the default; `--zmq tcp://HOST:PORT` uses ZeroMQ instead
 (no events there). `--token-file` sends `auth TOKEN` before anything else.
@@ -27,7 +30,7 @@ from typing import Any, Callable
 
 from rvs_server.protocol import is_ignored
 
-from . import mission
+from . import campaign, mission
 from .gnc import DEFAULT_HOST, DEFAULT_PORT, Event, RvsClient, RvsClientError, RvsRequestError, ZmqClient
 
 EXIT_OK, EXIT_FAILED, EXIT_NOT_STARTED = 0, 1, 2
@@ -277,6 +280,7 @@ def build_parser() -> argparse.ArgumentParser:
         sub = actions.add_parser(action, parents=[common], help=text)
         sub.add_argument("file", metavar="FILE")
         sub.add_argument("--set", action="append", metavar="NAME=VALUE", help="value of ${NAME}; repeatable")
+    campaign.add_parser(commands)
     return parser
 
 
@@ -292,7 +296,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     printer = Printer()
-    handlers = {"send": command_send, "shell": command_shell, "mission": command_mission}
+    handlers = {"send": command_send, "shell": command_shell, "mission": command_mission,
+                "campaign": lambda args, _printer: campaign.command_campaign(args)}
     try:
         return handlers[args.command](args, printer)
     except StartError as exc:
