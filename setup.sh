@@ -4,8 +4,9 @@
 set -euo pipefail
 cd "$(dirname "$0")"
 
-# Open3D's wheel links against libusb and libgomp, which a minimal Debian lacks.
-SYSTEM_PACKAGES="libusb-1.0-0 libgomp1"
+# Open3D's wheel links against libusb and libgomp, which a minimal Debian lacks; chromium is the
+# browser the web view's tests drive through Playwright (`playwright install` needs the internet).
+SYSTEM_PACKAGES="libusb-1.0-0 libgomp1 chromium"
 missing=""
 for pkg in $SYSTEM_PACKAGES; do
     dpkg-query -W -f='${Status}' "$pkg" 2>/dev/null | grep -q "install ok installed" || missing="$missing $pkg"

@@ -7,11 +7,14 @@ half-started server (connections are refused until then, as on the text port).
 from __future__ import annotations
 
 import asyncio
+import html
 import json
 import logging
+import re
 import socket
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Awaitable, Callable, Mapping
+from urllib.parse import quote
 
 from aiohttp import web
 
@@ -29,6 +32,7 @@ if TYPE_CHECKING:
 log = logging.getLogger("rvs.web")
 
 STATIC = Path(__file__).resolve().parent / "static"
+_STATIC_REF = re.compile(r'\b(src|href)="(/static/[^"?#]+)"')  # the page's own assets
 DEFAULT_LIMIT = 20
 STATUS_TIMEOUT_S = 10.0
 SECURITY_HEADERS = {
@@ -129,7 +133,14 @@ class WebView:
     # -- routes -----------------------------------------------------------------------------------
 
     async def _index(self, request: web.Request) -> web.StreamResponse:
-        return web.FileResponse(STATIC / "index.html", headers={"Cache-Control": "no-cache"})
+        """The page. Opened as /?token=T, its own scripts and styles are named with the token too: a
+        browser cannot send a header for them, and every route needs the token."""
+        page = (STATIC / "index.html").read_text()
+        token = request.query.get("token")
+        if token and self.server.token is not None:  # allowed() found it equal to the server's token
+            query = html.escape("?token=" + quote(token, safe=""), quote=True)
+            page = _STATIC_REF.sub(lambda m: f'{m.group(1)}="{m.group(2)}{query}"', page)
+        return web.Response(text=page, content_type="text/html", headers={"Cache-Control": "no-store"})
 
     async def _status(self, request: web.Request) -> web.Response:
         """The `status` command through the one dispatcher, its reply's pairs as a JSON object."""

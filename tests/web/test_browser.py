@@ -1,0 +1,84 @@
+"""The page in a real headless browser: Debian's chromium driven by Playwright (pointed at the system
+browser; `playwright install` downloads one and cannot work offline). ./setup.sh installs chromium;
+without it, or without the playwright package, these tests are skipped with the reason.
+
+A real server with a token: the page, opened as /?token=T, must pass the token on to every request
+(a 401 anywhere fails the test), must make no request to any other host, and must show a text-port
+job's progress and its events live.
+"""
+from __future__ import annotations
+
+import os
+import re
+import shutil
+from urllib.parse import urlsplit
+
+import pytest
+from web_client import free_port
+
+from conftest import pairs
+
+sync_api = pytest.importorskip("playwright.sync_api", reason="the playwright package is not installed "
+                               "(pip install -e '.[test]')")
+CHROMIUM = os.environ.get("RVS_CHROMIUM") or shutil.which("chromium") or shutil.which("chromium-browser")
+pytestmark = pytest.mark.skipif(CHROMIUM is None, reason="no chromium on this machine: ./setup.sh installs "
+                                "Debian's chromium package (apt-get install chromium)")
+
+TOKEN = "browser-test-token-0123"
+SCREENSHOT = os.environ.get("RVS_WEBVIEW_SCREENSHOT", "/tmp/webview.png")
+
+
+@pytest.fixture
+def browser():
+    with sync_api.sync_playwright() as playwright:
+        browser = playwright.chromium.launch(executable_path=CHROMIUM, args=[
+            "--no-sandbox", "--disable-gpu", "--disable-background-networking", "--no-first-run"])
+        yield browser
+        browser.close()
+
+
+def test_page_shows_a_text_port_job_live(server_factory, tmp_path, browser):
+    token_file = tmp_path / "token"
+    token_file.write_text(TOKEN + "\n")
+    token_file.chmod(0o600)
+    server = server_factory(args=["--token-file", str(token_file), "--web-port", str(free_port())])
+    page = browser.new_page(viewport={"width": 1400, "height": 950})
+    requests, refused, errors = [], [], []
+    page.on("request", lambda r: requests.append(r.url))
+    page.on("response", lambda r: refused.append(f"{r.status} {r.url}") if r.status >= 400 else None)
+    page.on("pageerror", lambda e: errors.append(str(e)))
+
+    page.goto(f"http://{server.web}/?token={TOKEN}")
+    page.wait_for_selector("#link.up", timeout=15000)          # the event stream is open
+    page.wait_for_selector("#devices td.h-ok", timeout=15000)   # /api/status answered
+    assert page.text_content("#mode") == "standby"
+
+    with server.connect() as client:
+        client.command(f"auth {TOKEN}")
+        reply = client.command("move-ptu --pan 10 --tilt 0", timeout=60)
+    assert " OK " in reply + " ", reply
+    job = pairs(reply)["job"]
+    # Locator assertions, not wait_for_function: the page's policy forbids eval, also to the test.
+    sync_api.expect(page.locator("#bar-text")).to_have_text("100 %", timeout=15000)
+    assert page.text_content("#job").split()[0] == job and page.text_content("#command") == "move-ptu"
+    page.wait_for_selector("#events li.t-progress", timeout=5000)
+    lines = page.locator("#events li").all_text_contents()
+    assert any("move-ptu" in line and "100%" in line for line in lines), lines[:10]
+    assert lines.index(next(line for line in lines if "100%" in line)) < \
+        lines.index(next(line for line in lines if "started" in line)), "newest first"
+    # The status asked again after the job: the PTU's own reading, within its resolution of 10.
+    sync_api.expect(page.locator("#pan")).to_have_text(re.compile(r"^(9\.9\d|10\.0\d)$"), timeout=15000)
+
+    # The topic filter hides and shows lines.
+    page.uncheck("#topic-progress")
+    sync_api.expect(page.locator("#events li.t-progress")).to_have_count(0)   # redrawn on the next frame
+    sync_api.expect(page.locator("#events li.t-mode")).not_to_have_count(0)
+    page.check("#topic-progress")
+    sync_api.expect(page.locator("#events li.t-progress")).not_to_have_count(0)
+
+    page.screenshot(path=SCREENSHOT, full_page=True)
+    host = server.web
+    assert requests and all(urlsplit(u).netloc == host for u in requests if not u.startswith("data:")), requests
+    assert all(f"token={TOKEN}" in u for u in requests if not u.startswith("data:")), requests
+    assert not refused, refused
+    assert not errors, errors
