@@ -423,8 +423,9 @@
   const START = /^job (\d+) start: navigate (.*)$/;
   const DRIVING = /driving to \((-?[\d.]+), (-?[\d.]+)\)/;
   function startTraverse(job, line) {
-    const nav = newTraverse(job);
+    const nav = newTraverse(job), before = state.nav.pose;
     nav.live = true;
+    if (before) { nav.pose = before; nav.driven.push([before[0], before[1]]); }  // it starts where the last one ended
     const to = /--to[ =](\S+)/.exec(line);
     if (to) nav.goal = pair(to[1]);
     state.nav = nav;
@@ -434,13 +435,26 @@
     let nav = state.nav;
     if (!nav.live || nav.job !== d.job) { startTraverse(d.job, ""); nav = state.nav; }
     const m = DRIVING.exec(d.message || "");
-    if (!m) return;
+    if (!m) {
+      if (/waiting for the GNC|started/.test(d.message || "")) return;
+      // Mapping or planning again after a drive: the leg announced last has been driven.
+      const end = nav.planned[nav.planned.length - 1], at = nav.pose;
+      if (end && (!at || at[0] !== end[0] || at[1] !== end[1])) {
+        nav.pose = [end[0], end[1], at ? Math.atan2(end[1] - at[1], end[0] - at[0]) : null];
+        pushCapped(nav.driven, [end[0], end[1]], PATH_POINTS);
+        redraw("map");
+      }
+      return;
+    }
     const target = [num(m[1]), num(m[2])];
     const last = nav.planned[nav.planned.length - 1];
     if (last && last[0] === target[0] && last[1] === target[1]) return;
     // A new leg begins where the last one ended: the rover has reached the previous target.
     if (last) { nav.pose = [last[0], last[1], Math.atan2(target[1] - last[1], target[0] - last[0])]; }
-    if (nav.pose) pushCapped(nav.driven, [nav.pose[0], nav.pose[1]], PATH_POINTS);
+    const tail = nav.driven[nav.driven.length - 1];
+    if (nav.pose && !(tail && tail[0] === nav.pose[0] && tail[1] === nav.pose[1])) {
+      pushCapped(nav.driven, [nav.pose[0], nav.pose[1]], PATH_POINTS);
+    }
     pushCapped(nav.planned, target, PATH_POINTS);
     redraw("map");
   }
