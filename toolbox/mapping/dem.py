@@ -30,6 +30,9 @@ from toolbox.grid import GridSpec
 # A cell boundary within this fraction of a cell counts as exact when DEMs are aligned for a mosaic.
 ALIGNMENT_TOLERANCE = 1e-6
 EIGHT_NEIGHBOURS = np.ones((3, 3), dtype=bool)
+# points_to_dem grids clouds of at least this many points with the compiled kernel: a TOF frame
+# (176 x 144 = 25 344 pixels) stays in numpy, where it takes about a millisecond.
+COMPILED_MIN_POINTS = 100_000
 
 
 @dataclass(frozen=True)
@@ -112,9 +115,22 @@ def grid_covering(points: np.ndarray, cell: float, margin: float = 0.0) -> GridS
 def points_to_dem(points: np.ndarray, spec: GridSpec) -> Dem:
     """Direct reconstruction: each point falls into its cell; the highest point of a cell is its height.
 
-    np.maximum.at on the flat cell index: numpy 2 runs it at a few ns a point, three times faster
-    than a sort + reduceat (tests/bench/bench_dem.py keeps the measurement)."""
+    Large clouds go through a compiled two-pass kernel (toolbox/mapping/_dem_kernel.py, numba): on
+    1 M points into 1000 x 1000 cells it runs in about the time of a bare np.maximum.at on the
+    precomputed cell index alone (tests/bench/bench_dem.py measures both in one run); the numpy
+    chain below (cell index, np.maximum.at, bincount) took about six times that. Small clouds (a TOF
+    frame) stay in numpy, so a server that never grids a panorama never loads numba. Both give the
+    same heights and counts to the bit (tests/toolbox/test_toolbox_dem.py)."""
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if len(points) >= COMPILED_MIN_POINTS:
+        from toolbox.mapping import _dem_kernel
+        heights, counts = _dem_kernel.points_to_dem_arrays(np.ascontiguousarray(points), spec.origin_x,
+                                                           spec.origin_y, spec.cell, spec.rows, spec.cols)
+        return Dem(spec, heights.reshape(spec.shape), counts.reshape(spec.shape))
+    return _points_to_dem_numpy(points, spec)
+
+
+def _points_to_dem_numpy(points: np.ndarray, spec: GridSpec) -> Dem:
     # GridSpec.cell_of's arithmetic, without its floor: inside the grid truncation is the floor, and
     # NaN coordinates fail the comparisons (filtering non-finite rows first would double the time).
     col = (points[:, 0] - spec.origin_x) / spec.cell
