@@ -28,13 +28,14 @@ from drivers.sim.clock import SimClock
 from drivers.sim.config import WorldConfig
 from rvs_server.devices.calibration import Calibration, CalibrationConfig, build_calibration
 from rvs_server.products.manifests import Products
+from rvs_server.products.retention import StorageSettings, prune
 
 from . import __version__
 from .activities import Activities
 from .config import ConfigError, Settings, load_model, read_toml, validate_section
 from .devices import Devices, DevicesConfig
 from .dispatch import CommandSpec, Dispatcher, Module, Registry, Session
-from .files import remove_stale_temporaries
+from .files import remove_stale_temporaries, set_storage_cap
 from .jobs import JobCounter, RecoveryStore
 from .protocol import BadRequest
 from .transports.tcp import claim_tcp_port, start_tcp
@@ -60,6 +61,8 @@ class ServerConfig(Settings):
     log_level: str = Field("INFO", pattern="^(DEBUG|INFO|WARNING|ERROR)$")
     log_file_max_mb: float = Field(10.0, gt=0, le=10_000, description="a log file rotates at this size")
     log_files_kept: int = Field(5, ge=2, le=1000, description="log files kept in DATA_DIR/logs, all runs together")
+    storage: StorageSettings = Field(default_factory=StorageSettings,
+                                     description="[storage]: the retention rule and the storage cap")
 
 
 @dataclass(frozen=True)
@@ -211,6 +214,8 @@ class Server:
         self.stopping = False  # a shutdown was asked for: start-up goes no further, jobs are refused
         self.ready = False  # the ports are open and every device started
         remove_stale_temporaries(self.data_dir)  # writes a kill cut short (rvs_server/files.py)
+        self._use_storage_settings()
+        prune(self, "start-up")  # the retention rule (products/retention.py); logs what it removed
 
     # -- configuration --------------------------------------------------------------------------
 
@@ -225,6 +230,10 @@ class Server:
         except ConfigError as exc:
             raise BadRequest(f"configuration not reloaded: {exc}") from None
         self._use(configuration)
+        self._use_storage_settings()
+
+    def _use_storage_settings(self) -> None:
+        set_storage_cap(self.data_dir / "products", int(self.settings.storage.cap_gib * 1024 ** 3))
 
     def _use(self, c: Configuration) -> None:
         self.settings, self.devices_config, self.world_config = c.settings, c.devices, c.world

@@ -25,8 +25,9 @@ from drivers.errors import DeviceFault, DeviceTimeout
 from .config import CommandConfig, Settings, bind_tokens, build_config, option_name, type_label
 from .host import Host, ModuleScope
 from .jobs import Job, JobContext, JobInterrupted, RecoverySet
-from .protocol import (Busy, CommandLine, DeviceError, InternalError, Interrupted, RvsError, Sleeping, Timeout,
-                       Unauthorized, UnknownCommand, WrongMode)
+from .products import retention
+from .protocol import (Busy, CommandLine, DeviceError, InternalError, Interrupted, RvsError, Sleeping, StorageFull,
+                       Timeout, Unauthorized, UnknownCommand, WrongMode)
 
 log = logging.getLogger("rvs.dispatch")
 
@@ -393,18 +394,29 @@ class Dispatcher:
         except RvsError:
             raise
         except Exception as exc:
-            raise self._unexpected(f"job {job.id} ({job.command})", exc) from None
+            full = retention.enospc_of(exc)  # a full disk (or the storage cap), wherever the job wrote
+            if full is None:
+                raise self._unexpected(f"job {job.id} ({job.command})", exc) from None
+            keep_reason = "storage" if rset is not None else None
+            raise StorageFull(f"{self._storage_sentence(full)}; {self._stopped_message(job, 'stopped', rset)}; "
+                              f"free space (products --prune), then continue", data=self._recovery_data(rset)) from None
         finally:
             for product in ctx.products:  # a product the job did not finish says why in its manifest
                 if not product.finished:
-                    product.finish("interrupted" if keep_reason else "failed")
+                    try:
+                        product.finish("interrupted" if keep_reason else "failed")
+                    except OSError as exc:  # a full disk: its files are whole, only the manifest is missing
+                        log.warning("job %s: the manifest of %s is not written: %s", job.id, product.name, exc)
             if rset is not None:
                 if keep_reason is None:
                     store.delete(rset.job)
                 else:
                     rset.reason = keep_reason
                     rset.percent = job.percent
-                    store.save(rset)
+                    try:
+                        store.save(rset)
+                    except OSError as exc:  # the set saved at its last checkpoint stays, still usable
+                        log.warning("job %s: recovery set not updated: %s", job.id, exc)
             self.job = None
             job.done.set()
             # A job that can be continued leaves the server in break mode, and so does a reset run in
@@ -413,6 +425,29 @@ class Dispatcher:
             self._base_mode = Mode.BREAK if can_continue or back_to_break else Mode.STANDBY
             log.info("job %s end (%s)", job.id, keep_reason or outcome)
             self._announce_mode()
+            self._apply_retention(f"after job {job.id}")
+
+    def _storage_sentence(self, exc: OSError) -> str:
+        """`no space left writing PATH: N MiB free on DIR` (under the cap: what it leaves)."""
+        root = self.server.products.root
+        path = Path(os.fsdecode(exc.filename)) if exc.filename else root
+        cap = retention.files.storage_cap(root)
+        free = retention.free_space(path, root, cap)
+        where = f"under the storage cap of {retention.human_bytes(cap)}" if cap else f"on {self.server.data_dir}"
+        log.error("no space left writing %s (%s): %s free %s", path, exc.strerror, free, where)
+        return f"no space left writing {path}: {retention.human_bytes(free)} free {where}"
+
+    def _apply_retention(self, why: str) -> None:
+        """The retention rule (server.toml [storage]) in a thread, after a job; it logs what it removed."""
+        def run() -> None:
+            try:
+                retention.prune(self.server, why)
+            except Exception:
+                log.exception("retention (%s) failed", why)
+        try:
+            asyncio.get_running_loop().run_in_executor(None, run)
+        except RuntimeError:  # no loop: the server is going away
+            pass
 
     @staticmethod
     def _stopped_message(job: Job, how: str, rset: RecoverySet | None) -> str:

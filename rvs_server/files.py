@@ -12,11 +12,14 @@ checkpoint meanwhile.
 from __future__ import annotations
 
 import contextlib
+import errno
 import itertools
 import json
 import logging
 import os
 import re
+import threading
+import time
 from pathlib import Path
 from typing import IO, Any, Callable, Iterator, Mapping
 
@@ -54,9 +57,11 @@ def atomic_file(path: str | Path, mode: str = "wb", **open_args: Any) -> Iterato
             yield handle
             handle.flush()
             os.fsync(handle.fileno())
+        _check_cap(tmp, path)
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as exc:
         tmp.unlink(missing_ok=True)
+        _name_the_file(exc, path)
         raise
     _fsync_directory(path.parent)
 
@@ -70,9 +75,11 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     try:
         yield tmp
         _fsync_file(tmp)
+        _check_cap(tmp, path)
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as exc:
         tmp.unlink(missing_ok=True)
+        _name_the_file(exc, path)
         raise
     _fsync_directory(path.parent)
 
@@ -123,6 +130,74 @@ def remove_stale_temporaries(root: str | Path) -> list[Path]:
         log.warning("removed %d temporary file(s) that interrupted writes left in %s: %s%s",
                     len(removed), root, shown, more)
     return removed
+
+
+# ------------------------------------------------------------------------------------------------
+# The storage cap (server.toml [storage] cap_gib): a folder whose files may take at most so many
+# bytes. A write that would pass it fails with ENOSPC before its rename, as on a full disk, and its
+# temporary file is removed, so the same path (the job runner's ERR 507) serves both.
+
+_caps: dict[Path, int] = {}
+_usage: dict[Path, tuple[float, int]] = {}  # root -> (when measured, bytes then + bytes written since)
+_caps_lock = threading.Lock()
+_USAGE_FRESH_S = 5.0
+
+
+def set_storage_cap(root: str | Path, cap_bytes: int) -> None:
+    """Cap what the files under `root` may take (0 removes the cap)."""
+    root = Path(root).absolute()
+    with _caps_lock:
+        if cap_bytes > 0:
+            _caps[root] = int(cap_bytes)
+        else:
+            _caps.pop(root, None)
+        _usage.pop(root, None)
+
+
+def storage_cap(root: str | Path) -> int:
+    return _caps.get(Path(root).absolute(), 0)
+
+
+def storage_changed(root: str | Path) -> None:
+    """Files under `root` were removed (or added outside these functions): measure again."""
+    with _caps_lock:
+        _usage.pop(Path(root).absolute(), None)
+
+
+def tree_bytes(root: str | Path) -> int:
+    total = 0
+    for folder, _, names in os.walk(root):
+        for name in names:
+            try:
+                total += os.lstat(os.path.join(folder, name)).st_size
+            except FileNotFoundError:
+                pass
+    return total
+
+
+def _check_cap(tmp: Path, path: Path) -> None:
+    if not _caps:
+        return
+    target = path.absolute()
+    for root, cap in list(_caps.items()):
+        if not target.is_relative_to(root):
+            continue
+        size = tmp.stat().st_size
+        with _caps_lock:
+            when, used = _usage.get(root, (0.0, -1))
+            if used < 0 or time.monotonic() - when > _USAGE_FRESH_S:
+                when, used = time.monotonic(), tree_bytes(root) - size  # the temporary file is counted apart
+            if used + size > cap:
+                _usage.pop(root, None)  # measured afresh next time: space is often freed by hand
+                raise OSError(errno.ENOSPC, f"No space left on device (the storage cap of {cap} bytes on "
+                                            f"{root} is reached: {used} used, {size} more asked)", str(path))
+            _usage[root] = (when, used + size)
+
+
+def _name_the_file(exc: BaseException, path: Path) -> None:
+    """A write that fails in a file object (a full disk) names no file: name the one being written."""
+    if isinstance(exc, OSError) and exc.filename is None:
+        exc.filename = str(path)
 
 
 def _fsync_file(path: Path) -> None:

@@ -208,6 +208,7 @@ class Job:
         self.interrupt = threading.Event()
         self.interrupt_reason = "break"
         self.done = threading.Event()
+        self.products: list[str] = []  # names of the product folders it writes (the retention rule keeps them)
 
     def request_interrupt(self, reason: str) -> None:
         self.interrupt_reason = reason
@@ -286,6 +287,7 @@ class JobContext(ModuleScope):
                                       job=self.job.id)
             self.checkpoint({**(self.resume or {}), "product": product.name})
         self.products.append(product)
+        self.job.products.append(product.name)
         return product
 
     def save_truth(self, product: Any) -> None:

@@ -40,6 +40,7 @@ ERROR_REASONS: dict[str, int] = {
     "internal": 500,
     "device": 503,
     "timeout": 504,
+    "storage": 507,
 }
 
 
@@ -100,6 +101,12 @@ class Timeout(RvsError):
 
 class InternalError(RvsError):
     reason = "internal"
+
+
+class StorageFull(RvsError):
+    """The disk (or the configured storage cap) is full: the job stopped, its recovery set is kept."""
+
+    reason = "storage"
 
 
 # ---------------------------------------------------------------------------------------------

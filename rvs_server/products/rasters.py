@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 import tifffile
 
-from rvs_server.files import atomic_path
+from rvs_server.files import atomic_file, atomic_path
 from toolbox.grid import GridSpec
 
 # GeoTIFF keys: raster is "pixel is area"; model type projected; a user-defined projection in metres.
@@ -26,9 +26,11 @@ _USER_DEFINED, _METRE = 32767, 9001
 def write_png(path: Path, rgb: np.ndarray) -> Path:
     """RGB (or grey) uint8 to PNG."""
     image = rgb[..., ::-1] if rgb.ndim == 3 else rgb
-    with atomic_path(path) as tmp:
-        if not cv2.imwrite(str(tmp), np.ascontiguousarray(image)):
-            raise OSError(f"cannot write {path}")
+    ok, encoded = cv2.imencode(".png", np.ascontiguousarray(image))
+    if not ok:
+        raise ValueError(f"cannot encode {path} as PNG")
+    with atomic_file(path) as handle:  # written by Python, so a full disk is an OSError with its errno
+        handle.write(encoded.tobytes())
     return path
 
 
