@@ -24,9 +24,10 @@ DAY = 86400.0
 
 
 def server_toml(storage: str) -> str:
+    """The repository's server.toml with its storage.* keys replaced by `storage` (lines KEY = VALUE)."""
     text = (Path(__file__).resolve().parents[2] / "configs" / "server.toml").read_text()
-    head = text.split("[storage]")[0]
-    return head + "\n[storage]\n" + storage + "\n"
+    kept = [line for line in text.splitlines() if not line.startswith("storage.")]
+    return "\n".join(kept + [f"storage.{line}" for line in storage.splitlines()]) + "\n"
 
 
 def fake_product(root: Path, name: str, command: str, size: int, age_days: float,
