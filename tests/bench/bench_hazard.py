@@ -1,14 +1,23 @@
-"""Benchmark: slope, step, roughness and hazard codes of a 1000 x 1000 DEM beside a per-cell reference.
+"""Benchmark: slope, step, roughness and hazard codes of a 1000 x 1000 DEM beside its references.
 
-The DEM: 2 cm cells (20 x 20 m) of rolling ground with rocks, 1 cm noise and 10 % unknown cells.
-- ours: hazard.plane_fit, step_height + agreed_step, and hazard_maps (all three and the codes), with
-  the default windows (plane 0.25 m: 25 x 25 cells; step 0.10 m; ground plate 0.5 m: 51 x 51);
-- reference: the straightforward way, per cell with scipy.ndimage.generic_filter: a least-squares
-  plane (numpy lstsq) over the same window for slope and roughness, and min / max / count windows
-  for the step (ETH's loop structure), run on a 100 x 100 crop and scaled to the full grid.
-Ours is checked against the reference on the crop before the times are printed.
+The DEM: 2 cm cells (20 x 20 m) of rolling ground with rocks, 1 cm noise and 10 % unknown cells, in
+float32 as a Dem holds its heights. Timed, with the default windows (plane 0.25 m: 25 x 25 cells;
+step 0.10 m; ground plate 0.5 m: 51 x 51):
+- ours: hazard_maps (all three and the codes), and its parts plane_fit and step_height + agreed_step;
+- reference (issue 26): five cv2.boxFilter passes (25 x 25) over the same grid; ours must stay
+  within 10 times. Printed against the float32 grid (the DEM's own, the harder reference) and the
+  same grid in float64;
+- before: hazard_maps as it was before issue 26, kept as reference_hazard_maps in
+  tests/toolbox/test_toolbox_hazard.py (the tests hold ours to it);
+- ours on float64 heights float32 cannot hold (the step's exact float64 morphology, slower);
+- the straightforward way, per cell with scipy.ndimage.generic_filter: a least-squares plane (numpy
+  lstsq) over the same window for slope and roughness, and min / max / count windows for the step
+  (ETH's loop structure), run on a 100 x 100 crop and scaled to the full grid.
+Ours is checked against the per-cell way on the crop and against before on the whole grid. The
+machine is shared, so ours, the references and before are timed in interleaved rounds (each the
+best of --repeats) and the ratios printed are medians over --rounds.
 
-    .venv/bin/python tests/bench/bench_hazard.py [--crop 100] [--repeats 3]
+    .venv/bin/python tests/bench/bench_hazard.py [--crop 100] [--repeats 3] [--rounds 5]
 """
 from __future__ import annotations
 
@@ -17,10 +26,14 @@ import sys
 import time
 from pathlib import Path
 
+import cv2
 import numpy as np
 from scipy import ndimage
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "toolbox"))
+from test_toolbox_hazard import reference_hazard_maps  # noqa: E402
+
 from toolbox.mapping import hazard as H  # noqa: E402
 
 CELL = 0.02
@@ -95,8 +108,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--crop", type=int, default=100)
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--rounds", type=int, default=5)
     args = parser.parse_args()
-    heights = test_dem(np.random.default_rng(0))
+    heights = test_dem(np.random.default_rng(0)).astype(np.float32)
     k_plane = H.half_width(CONFIG.plane_radius, CELL)
     # The crop is cut with a margin so both see the same windows; only its middle is compared, and
     # the reference's time per cell of the whole crop is scaled to the full grid.
@@ -108,30 +122,65 @@ def main() -> None:
     print(f"{SIZE} x {SIZE} DEM, {CELL} m cells, {np.isnan(heights).mean():.0%} unknown; reference on a "
           f"{side} x {side} crop ({args.crop} x {args.crop} compared), scaled x{scale:.0f}")
 
-    ref_plane_time, (ref_slope, ref_rough) = best_of(1, reference_plane_fit, heights[crop], k_plane)
-    ref_step_time, ref_step = best_of(1, reference_step, heights[crop])
-    plane_time, (slope, rough) = best_of(args.repeats, H.plane_fit, heights, CELL, CONFIG.plane_radius)
+    ref_plane_time, (ref_slope, ref_rough) = best_of(1, reference_plane_fit, heights[crop].astype(np.float64), k_plane)
+    ref_step_time, ref_step = best_of(1, reference_step, heights[crop].astype(np.float64))
 
     def our_step(z):
         step = H.step_height(z, CELL, CONFIG.step_radius, CONFIG.ground_radius)
         return H.agreed_step(step, CELL, CONFIG.step_radius, CONFIG.step_limit, CONFIG.step_min_cells)
 
-    step_time, step = best_of(args.repeats, our_step, heights)
-    maps_time, maps = best_of(args.repeats, H.hazard_maps, heights, CELL)
+    def five_box_filters(grid):
+        return [cv2.boxFilter(grid, -1, (2 * k_plane + 1, 2 * k_plane + 1), normalize=False,
+                              borderType=cv2.BORDER_CONSTANT) for _ in range(5)]
+
+    wide = test_dem(np.random.default_rng(0))                 # float64 values float32 cannot hold
+    grid64 = heights.astype(np.float64)
+    H.hazard_maps(heights[:400, :400], CELL)                   # numba: load and compile (or the cache)
+    times = {name: [] for name in ("box32", "box64", "maps", "plane", "step", "maps64", "before")}
+    for round_ in range(args.rounds):
+        times["box32"].append(best_of(args.repeats, five_box_filters, heights)[0])
+        times["box64"].append(best_of(args.repeats, five_box_filters, grid64)[0])
+        maps_time, maps = best_of(args.repeats, H.hazard_maps, heights, CELL)
+        times["maps"].append(maps_time)
+        plane_time, (slope, rough) = best_of(args.repeats, H.plane_fit, heights, CELL, CONFIG.plane_radius)
+        times["plane"].append(plane_time)
+        step_time, step = best_of(args.repeats, our_step, heights)
+        times["step"].append(step_time)
+        times["maps64"].append(best_of(1, H.hazard_maps, wide, CELL)[0])
+        if round_ < 3:                                        # 0.7 s each: three rounds are enough
+            before_time, before = best_of(1, reference_hazard_maps, heights, CELL)
+            times["before"].append(before_time)
 
     ours_crop = np.s_[crop[0].start + margin:crop[0].stop - margin, crop[1].start + margin:crop[1].stop - margin]
     assert np.allclose(slope[ours_crop], ref_slope[middle], atol=1e-6, equal_nan=True)
     assert np.allclose(rough[ours_crop], ref_rough[middle], atol=1e-7, equal_nan=True)
     assert np.allclose(step[ours_crop], ref_step[middle], atol=1e-9, equal_nan=True)
+    assert np.array_equal(maps.code, before.code)
+    for name in ("slope_deg", "step", "roughness"):
+        assert np.allclose(getattr(maps, name), getattr(before, name), rtol=1e-6, atol=1e-6, equal_nan=True)
+
+    def median(name):
+        return float(np.median(times[name]))
+
+    def ratio(name, reference):
+        rounds = min(len(times[name]), len(times[reference]))
+        return float(np.median(np.array(times[name][:rounds]) / np.array(times[reference][:rounds])))
 
     ref_plane_full, ref_step_full = ref_plane_time * scale, ref_step_time * scale
-    print(f"  slope + roughness  reference {ref_plane_full:8.1f} s (scaled)   ours {plane_time * 1000:7.1f} ms"
-          f"   {ref_plane_full / plane_time:8.0f}x faster")
-    print(f"  step               reference {ref_step_full:8.1f} s (scaled)   ours {step_time * 1000:7.1f} ms"
-          f"   {ref_step_full / step_time:8.0f}x faster")
-    total = ref_plane_full + ref_step_full
-    print(f"  hazard_maps (all)  reference {total:8.1f} s (scaled)   ours {maps_time * 1000:7.1f} ms"
-          f"   {total / maps_time:8.0f}x faster")
+    print(f"  five cv2.boxFilter 25 x 25 (reference)   float32 grid {median('box32') * 1000:7.1f} ms"
+          f"   float64 grid {median('box64') * 1000:7.1f} ms")
+    print(f"  hazard_maps (all)     ours {median('maps') * 1000:7.1f} ms   {ratio('maps', 'box32'):5.1f}x the "
+          f"reference on float32 ({ratio('maps', 'box64'):4.1f}x on float64; issue 26: within 10x)")
+    print(f"    ratios per round: {' '.join(f'{m / b:.1f}' for m, b in zip(times['maps'], times['box32']))}")
+    print(f"  before (until issue 26) {median('before') * 1000:7.1f} ms   {ratio('before', 'box32'):5.1f}x the "
+          f"reference on float32 ({ratio('before', 'box64'):4.1f}x on float64); "
+          f"ours {median('before') / median('maps'):.1f}x faster")
+    print(f"  float64 heights     ours {median('maps64') * 1000:7.1f} ms   {ratio('maps64', 'box32'):5.1f}x "
+          f"(heights float32 cannot hold: exact float64 morphology)")
+    print(f"  slope + roughness  per-cell {ref_plane_full:8.1f} s (scaled)   ours {median('plane') * 1000:7.1f} ms"
+          f"   {ref_plane_full / median('plane'):8.0f}x faster")
+    print(f"  step               per-cell {ref_step_full:8.1f} s (scaled)   ours {median('step') * 1000:7.1f} ms"
+          f"   {ref_step_full / median('step'):8.0f}x faster")
     codes, counts = np.unique(maps.code, return_counts=True)
     print("  codes: " + ", ".join(f"{c}: {n}" for c, n in zip(codes.tolist(), counts.tolist())))
 

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import math
 
+import cv2
 import numpy as np
 import pytest
 from scipy import ndimage
@@ -32,15 +33,22 @@ def interior(array: np.ndarray, margin: int = 15) -> np.ndarray:
     return array[margin:-margin, margin:-margin]
 
 
+@pytest.fixture(params=["numpy", "compiled"])
+def plane_fit_path(request, monkeypatch):
+    """plane_fit in numpy (small grids) or through the compiled kernel (large ones), on any grid."""
+    monkeypatch.setattr(H, "COMPILED_MIN_CELLS", 10 ** 12 if request.param == "numpy" else 0)
+    return request.param
+
+
 # ---------------------------------------------------------------------------------- slope, roughness
 @pytest.mark.parametrize("slope_deg, azimuth", [(0.0, 0.0), (10.0, 0.3), (25.0, 2.0), (40.0, -1.2)])
-def test_slope_of_a_plane(slope_deg, azimuth):
+def test_slope_of_a_plane(slope_deg, azimuth, plane_fit_path):
     slope, roughness = H.plane_fit(inclined_plane(slope_deg, azimuth), CELL, 0.1)
     assert np.abs(interior(slope) - slope_deg).max() < 1e-6
     assert interior(roughness).max() < 1e-6
 
 
-def test_slope_ignores_unknown_cells():
+def test_slope_ignores_unknown_cells(plane_fit_path):
     heights = inclined_plane(15.0, 0.7)
     rng = np.random.default_rng(0)
     heights[rng.random(heights.shape) < 0.3] = np.nan
@@ -50,7 +58,7 @@ def test_slope_ignores_unknown_cells():
     assert np.nanmax(np.abs(interior(slope) - 15.0)) < 1e-6
 
 
-def test_roughness_of_noise_is_its_sigma():
+def test_roughness_of_noise_is_its_sigma(plane_fit_path):
     rng = np.random.default_rng(1)
     sigma = 0.01
     heights = inclined_plane(12.0, 1.0, shape=(200, 200)) + rng.normal(0.0, sigma, (200, 200))
@@ -146,6 +154,165 @@ def test_roughness_limit_flags_a_rubble_field():
     assert not rough[:10].any()
 
 
+# ---------------------------------------------------------------------------------- the reference
+# hazard_maps as it was before issue 26 (ten float64 sepFilter2D correlations for the plane fit,
+# float64 cv2.erode / cv2.dilate for the step, whole-grid numpy for the rest): slow (about 0.7 s on
+# 1000 x 1000) but the definition the fast one is held to, on random DEMs with holes and a real one.
+# tests/bench/bench_hazard.py times it as "before".
+def reference_hazard_maps(heights: np.ndarray, cell: float,
+                          config: H.HazardConfig = H.HazardConfig()) -> H.HazardMaps:
+    heights = np.asarray(heights, dtype=np.float64)
+    step = reference_step_height(heights, cell, config.step_radius, config.ground_radius)
+    step = reference_agreed_step(step, cell, config.step_radius, config.step_limit, config.step_min_cells)
+    # Slope and roughness are the ground's: cells that are already a step hazard (rocks) take no
+    # part in the plane fit. Otherwise every rock spreads a ring of false slope and roughness
+    # hazards a plane window wide around itself, which the planner's clearance then grows again:
+    # on 15-20 % rock cover that ring held half the mapped hazards and closed open passages.
+    ground = np.where(np.nan_to_num(step, nan=0.0) > config.step_limit, np.nan, heights)
+    slope, roughness = reference_plane_fit(ground, cell, config.plane_radius)
+    code = reference_hazard_code(heights, slope, step, roughness, config)
+    return H.HazardMaps(slope.astype(np.float32), step.astype(np.float32), roughness.astype(np.float32), code)
+
+
+def reference_plane_fit(heights: np.ndarray, cell: float, radius: float) -> tuple[np.ndarray, np.ndarray]:
+    z = np.asarray(heights, dtype=np.float64)
+    known = np.isfinite(z)
+    if not known.any():
+        nan = np.full(z.shape, np.nan)
+        return nan, nan.copy()
+    k = H.half_width(radius, cell)
+    ones = np.ones(2 * k + 1)
+    offsets = np.arange(-k, k + 1) * cell
+    weight = known.astype(np.float64)
+    zc = np.where(known, z - np.median(z[known]), 0.0)
+
+    def window_sum(image, along_x, along_y):
+        # kernelX runs along columns (x, east), kernelY along rows (y, north); correlation, zeros outside.
+        return cv2.sepFilter2D(image, cv2.CV_64F, along_x, along_y, borderType=cv2.BORDER_CONSTANT)
+
+    n = window_sum(weight, ones, ones)
+    sx, sy = window_sum(weight, offsets, ones), window_sum(weight, ones, offsets)
+    sxx, syy = window_sum(weight, offsets ** 2, ones), window_sum(weight, ones, offsets ** 2)
+    sxy = window_sum(weight, offsets, offsets)
+    sz, szz = window_sum(zc, ones, ones), window_sum(zc * zc, ones, ones)
+    sxz, syz = window_sum(zc, offsets, ones), window_sum(zc, ones, offsets)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        # Centre the sums on the window's mean (eliminates the plane's offset c).
+        cxx, cyy, cxy = sxx - sx * sx / n, syy - sy * sy / n, sxy - sx * sy / n
+        cxz, cyz, czz = sxz - sx * sz / n, syz - sy * sz / n, szz - sz * sz / n
+        det = cxx * cyy - cxy * cxy
+        a = (cyy * cxz - cxy * cyz) / det
+        b = (cxx * cyz - cxy * cxz) / det
+        residual = np.maximum(czz - a * cxz - b * cyz, 0.0)
+        roughness = np.sqrt(residual / (n - 3))
+    fit = known & (n >= H.MIN_FIT_CELLS - 0.5) & (det > 1e-12 * (cell ** 4) * n * n)
+    slope = np.where(fit, np.degrees(np.arctan(np.hypot(a, b))), np.nan)
+    return slope, np.where(fit, roughness, np.nan)
+
+
+def reference_step_height(heights: np.ndarray, cell: float, edge_radius: float,
+                          ground_radius: float | None = None) -> np.ndarray:
+    z = np.asarray(heights, dtype=np.float64)
+    known = np.isfinite(z)
+    step = z - reference_local_minimum(z, H.half_width(edge_radius, cell))
+    if ground_radius:
+        step = np.maximum(step, z - reference_ground_surface(z, H.half_width(ground_radius, cell)))
+    return np.where(known, step, np.nan)
+
+
+def reference_local_minimum(z: np.ndarray, k: int) -> np.ndarray:
+    kernel = np.ones((2 * k + 1, 2 * k + 1), np.uint8)
+    return cv2.erode(np.where(np.isfinite(z), z, np.inf), kernel, borderType=cv2.BORDER_CONSTANT,
+                     borderValue=np.inf)
+
+
+def reference_ground_surface(z: np.ndarray, k: int) -> np.ndarray:
+    kernel = np.ones((2 * k + 1, 2 * k + 1), np.uint8)
+    # Beyond the grid is unknown like any unseen cell: the plate may hang over it, resting on known
+    # cells only (else a plane would read as a step along the grid's uphill edges).
+    padded = np.pad(z, k, constant_values=np.nan)
+    eroded = reference_local_minimum(padded, k)
+    eroded = np.where(np.isfinite(eroded), eroded, -np.inf)
+    opened = cv2.dilate(eroded, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=-np.inf)
+    return opened[k:-k, k:-k]
+
+
+def reference_agreed_step(step: np.ndarray, cell: float, radius: float, limit: float,
+                          min_cells: int) -> np.ndarray:
+    k = H.half_width(radius, cell)
+    over = (np.nan_to_num(step, nan=0.0) > limit).astype(np.float64)
+    agreeing = cv2.boxFilter(over, -1, (2 * k + 1, 2 * k + 1), normalize=False, borderType=cv2.BORDER_CONSTANT)
+    return step * np.minimum(1.0, agreeing / min_cells)
+
+
+def reference_hazard_code(heights: np.ndarray, slope_deg: np.ndarray, step: np.ndarray, roughness: np.ndarray,
+                          config: H.HazardConfig) -> np.ndarray:
+    causes = ((slope_deg > config.slope_limit_deg) * H.SLOPE | (step > config.step_limit) * H.STEP
+              | (roughness > config.roughness_limit) * H.ROUGHNESS).astype(np.uint8)
+    code = np.where(causes > 0, causes | H.HAZARD, H.SAFE).astype(np.uint8)
+    measured = np.isfinite(slope_deg) & np.isfinite(step) & np.isfinite(roughness)
+    code[(code == H.SAFE) & ~measured] = H.UNKNOWN
+    code[~np.isfinite(heights)] = H.UNKNOWN
+    return code
+
+
+def random_dem(rng: np.random.Generator, shape, z0: float = 0.0, single: bool = True) -> np.ndarray:
+    """Rolling ground with rocks, 1 cm noise, 10 % unknown cells and a few unseen patches; float32
+    values (as a Dem holds) or float64 ones float32 cannot hold."""
+    rows, cols = np.mgrid[0:shape[0], 0:shape[1]] * CELL
+    heights = z0 + 0.4 * np.sin(cols / 1.3) * np.cos(rows / 1.7) + 0.08 * cols
+    for _ in range(shape[0] * shape[1] // 2500):
+        r0, c0 = rng.uniform(0, shape[0] * CELL), rng.uniform(0, shape[1] * CELL)
+        radius, height = rng.uniform(0.05, 0.3), rng.uniform(0.03, 0.3)
+        heights += height * np.sqrt(np.clip(1 - ((rows - r0) ** 2 + (cols - c0) ** 2) / radius ** 2, 0, None))
+    heights += rng.normal(0, 0.01, heights.shape)
+    heights[rng.random(heights.shape) < 0.10] = np.nan
+    for _ in range(5):
+        r, c = rng.integers(0, shape[0]), rng.integers(0, shape[1])
+        heights[r:r + rng.integers(3, 40), c:c + rng.integers(3, 40)] = np.nan
+    return heights.astype(np.float32) if single else heights
+
+
+def assert_same_maps(maps: H.HazardMaps, reference: H.HazardMaps) -> None:
+    """The same maps within float32 rounding (the slope's arctan and the window sums' order aside)."""
+    for name, atol in (("slope_deg", 1e-4), ("step", 1e-7), ("roughness", 1e-6)):
+        ours, theirs = getattr(maps, name), getattr(reference, name)
+        assert ours.dtype == np.float32 and ours.shape == theirs.shape
+        assert np.array_equal(np.isnan(ours), np.isnan(theirs)), name
+        np.testing.assert_allclose(ours, theirs, rtol=1e-6, atol=atol, equal_nan=True, err_msg=name)
+    assert np.array_equal(maps.code, reference.code)
+
+
+@pytest.mark.parametrize("seed, shape, z0, single", [(0, (160, 190), 0.0, True), (1, (217, 143), 250.0, True),
+                                                     (2, (150, 150), 250.0, False), (3, (60, 400), -3.0, False)])
+def test_hazard_maps_are_the_reference_on_random_dems(plane_fit_path, seed, shape, z0, single):
+    heights = random_dem(np.random.default_rng(seed), shape, z0, single)
+    assert_same_maps(H.hazard_maps(heights, CELL), reference_hazard_maps(heights, CELL))
+    config = H.HazardConfig(plane_radius=0.1, step_radius=0.06, ground_radius=0.3, step_min_cells=3)
+    assert_same_maps(H.hazard_maps(heights, 0.03, config), reference_hazard_maps(heights, 0.03, config))
+
+
+def test_hazard_maps_are_the_reference_on_a_large_dem():
+    """Past COMPILED_MIN_CELLS without any patching: the server's path for a full map."""
+    heights = random_dem(np.random.default_rng(4), (400, 300))
+    assert heights.size >= H.COMPILED_MIN_CELLS
+    assert_same_maps(H.hazard_maps(heights, CELL), reference_hazard_maps(heights, CELL))
+
+
+@pytest.mark.parametrize("k", [0, 1, 2, 5, 12, 25])
+def test_grey_morphology_is_cv2s_to_the_bit(k):
+    rng = np.random.default_rng(k)
+    image = rng.normal(0.0, 1.0, (70, 90)) + 100.0            # float64 values float32 cannot hold
+    image[rng.random(image.shape) < 0.2] = np.inf
+    square = np.ones((2 * k + 1, 2 * k + 1), np.uint8)
+    for minimum, morph, border in ((True, cv2.erode, np.inf), (False, cv2.dilate, -np.inf)):
+        expected = morph(image, square, borderType=cv2.BORDER_CONSTANT, borderValue=border)
+        assert np.array_equal(H.box_extreme(image, k, minimum), expected)
+        assert np.array_equal(H.box_extreme(image.astype(np.float32).astype(np.float64), k, minimum),
+                              morph(image.astype(np.float32), square, borderType=cv2.BORDER_CONSTANT,
+                                    borderValue=border))
+
+
 # ---------------------------------------------------------------------------------- the simulated scene
 @pytest.fixture(scope="module")
 def scene():
@@ -210,3 +377,9 @@ def test_simulated_hazards_find_the_obstacles(scene):
     clear = known & ~ndimage.binary_dilation(rocks, iterations=10)
     assert clear.sum() > 20000
     assert hazard[clear].mean() < 0.02
+
+
+def test_hazard_maps_are_the_reference_on_the_simulated_dem(scene, plane_fit_path):
+    dem = scene[2]
+    assert dem.heights.dtype == np.float32 and np.isnan(dem.heights).any()
+    assert_same_maps(H.hazard_maps(dem.heights, dem.spec.cell), reference_hazard_maps(dem.heights, dem.spec.cell))
