@@ -67,12 +67,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
-from rvs_server.files import write_text_atomic
 from rvs_server.protocol import split_tag
 
 from . import mission
 from .gnc import Result, RvsClient, RvsClientError
-from .run_log import RunLog
+from .run_log import RunLog, write_atomic
 
 EXIT_OK, EXIT_FAILED, EXIT_NOT_STARTED = 0, 1, 2
 REPO = Path(__file__).resolve().parent.parent
@@ -431,8 +430,8 @@ def write_summary(campaign: Campaign, log: RunLog, out: Path) -> None:
     writer = csv.DictWriter(text, fieldnames=columns)
     writer.writeheader()
     writer.writerows(rows)
-    write_text_atomic(out / "summary.csv", text.getvalue())
-    write_text_atomic(out / "summary.json", json.dumps({"campaign": campaign.name, "settings": campaign.settings,
+    write_atomic(out / "summary.csv", text.getvalue())
+    write_atomic(out / "summary.json", json.dumps({"campaign": campaign.name, "settings": campaign.settings,
                                                        "runs": rows}, indent=2) + "\n")
 
     def cell(value: Any) -> str:
@@ -441,7 +440,7 @@ def write_summary(campaign: Campaign, log: RunLog, out: Path) -> None:
     table = [f"# Campaign {campaign.name}", "",
              "| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
     table += ["| " + " | ".join(cell(row.get(column)) for column in columns) + " |" for row in rows]
-    write_text_atomic(out / "summary.md", "\n".join(table) + "\n")
+    write_atomic(out / "summary.md", "\n".join(table) + "\n")
 
 
 # ---------------------------------------------------------------------------------------------

@@ -86,6 +86,19 @@ class RunLog:
         return record
 
 
+def write_atomic(path: Path, text: str) -> None:
+    """Replace `path` with `text` whole or not at all (a summary a kill cuts short is worse than the
+    previous one): written beside it, fsynced, renamed over it."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    temporary = path.with_name(f".{path.name}.tmp")
+    with open(temporary, "w") as handle:
+        handle.write(text)
+        handle.flush()
+        os.fsync(handle.fileno())
+    os.replace(temporary, path)
+
+
 def group_by_settings(records: Iterable[dict[str, Any]]) -> list[tuple[dict[str, Any], list[dict[str, Any]]]]:
     """The file's runs grouped by their settings (first seen first), the last line of a run winning:
     what a `--report` prints one table for."""
