@@ -40,6 +40,7 @@ from .jobs import JobCounter, RecoveryStore
 from .protocol import BadRequest
 from .transports.tcp import claim_tcp_port, start_tcp
 from .transports.zmq import ZmqTransport
+from .native import NativeWorker
 from .web import WebView
 
 log = logging.getLogger("rvs")
@@ -63,6 +64,9 @@ class ServerConfig(Settings):
     log_files_kept: int = Field(5, ge=2, le=1000, description="log files kept in DATA_DIR/logs, all runs together")
     storage: StorageSettings = Field(default_factory=StorageSettings,
                                      description="[storage]: the retention rule and the storage cap")
+    worker_memory_mb: int = Field(6144, ge=0, description="address space the native worker may take (MiB; it "
+                                  "imports ~1.6 GB of libraries); past it the step ends, the worker is restarted; "
+                                  "0: no limit")
 
 
 @dataclass(frozen=True)
@@ -201,6 +205,7 @@ class Server:
         self.devices = Devices(self.devices_config, self.clock, self.world_config, self.world_file)
         self.zmq: ZmqTransport | None = None
         self.web: WebView | None = None  # the web view, when web_port is not 0
+        self.native = NativeWorker(self.settings.worker_memory_mb or None)   # started with the devices
         self.started = time.monotonic()
         self.log_handlers: list[logging.Handler] = []
         self.log_path = self._start_log()
@@ -369,6 +374,7 @@ class Server:
 
     def _open_devices(self) -> None:
         """Every device, and the simulated world they share: jobs never wait for it once ready."""
+        self.native.start()          # the child imports its libraries while the devices open
         self.devices.open_all()
         for device in self.devices:
             if device.health == "fault":
@@ -436,6 +442,7 @@ class Server:
             self.zmq.close()
             self.zmq = None
         self.dispatcher.shutdown()
+        self.native.stop()
         log.info("RVS stopped")
         if self._stopped is not None:
             self._stopped.set()

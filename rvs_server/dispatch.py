@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any, Awaitable, Callable, Literal, Mapping, Protocol
 
 from drivers.errors import DeviceFault, DeviceTimeout
+from rvs_server.native import WorkerDied
 
 from .config import CommandConfig, Settings, bind_tokens, build_config, option_name, type_label
 from .host import Host, ModuleScope
@@ -391,6 +392,12 @@ class Dispatcher:
             keep_reason = err.reason if kept is not None else None
             raise type(err)(f"{err.message}; {self._stopped_message(job, 'stopped', kept)}",
                             data=self._recovery_data(kept)) from None
+        except WorkerDied as exc:
+            # The server lives on; the step can be tried again with `continue` (native.py).
+            keep_reason = "worker-died" if rset is not None else None
+            kept = f"recovery set kept; {self._stopped_message(job, 'stopped', rset)}" if rset is not None \
+                else self._stopped_message(job, "stopped", None)
+            raise InternalError(f"{exc}; {kept}", data=self._recovery_data(rset)) from None
         except RvsError:
             raise
         except Exception as exc:

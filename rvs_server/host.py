@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
 if TYPE_CHECKING:
+    from rvs_server.native import NativeWorker
     import logging
 
     from drivers.sim.clock import SimClock
@@ -40,6 +41,7 @@ class Host(Protocol):
     products: "Products"
     dispatcher: "Dispatcher"
     activities: "Activities"
+    native: "NativeWorker"           # the heavy native steps of jobs, in a child process (native.py)
     stopping: bool                   # a shutdown was asked for
     registry: "Registry"
 

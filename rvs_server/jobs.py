@@ -265,6 +265,11 @@ class JobContext(ModuleScope):
         if self.job.interrupt.is_set():
             raise JobInterrupted(self.job.interrupt_reason)
 
+    def native(self, step: str, func: Any, *args: Any, **kwargs: Any) -> Any:
+        """func(*args, **kwargs) in the native worker (rvs_server/native.py): a crash there ends this
+        job with WorkerDied, not the server; a break kills the step at once."""
+        return self.server.native.call(step, func, args, kwargs, check=self.safe_point)
+
     def sleep(self, sim_seconds: float) -> None:
         """Wait in simulated time; a `break` ends the wait at once."""
         if self.clock.wait(self.job.interrupt, sim_seconds):

@@ -367,6 +367,10 @@ class StepContext:
     def safe_point(self) -> None:
         self.job.safe_point()
 
+    def native(self, func: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
+        """func(*args, **kwargs) in the native worker, named after this step (JobContext.native)."""
+        return self.job.native(self.step, func, *args, **kwargs)
+
     def save_partial(self, key: str, result: Any) -> None:
         """A finished piece of a long step (one view of many), so continue does not redo it."""
         save_result(self.scratch, key, result, self.types)

@@ -59,7 +59,7 @@ import time
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import get_args
+from typing import Any, get_args
 
 import cv2
 import numpy as np
@@ -172,6 +172,17 @@ def reconstruct_hop(frames: np.ndarray, timestamps: np.ndarray, intrinsics: Intr
     result = from_colmap(largest(models), len(frames), timestamps, len(models))
     timings["total"] = sum(timings.values())
     return replace(result, timings=timings)
+
+
+def reconstruct_hop_quietly(*args: Any, **kwargs: Any) -> "HopReconstruction":
+    """reconstruct_hop with COLMAP's per-image INFO lines off (its warnings and errors kept), as the
+    native worker runs it."""
+    level = pycolmap.logging.minloglevel
+    pycolmap.logging.minloglevel = 1
+    try:
+        return reconstruct_hop(*args, **kwargs)
+    finally:
+        pycolmap.logging.minloglevel = level
 
 
 @contextmanager

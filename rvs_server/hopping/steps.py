@@ -31,7 +31,7 @@ from rvs_server.config import Point
 from rvs_server.hopping.estimate import (EstimateError, EstimateParams, FitParams, HopEstimate, estimate_hop,
                                          flight_check)
 from rvs_server.hopping.settings import Mapper, SfmSetting
-from rvs_server.hopping.sfm import HopReconstruction, SfmConfig, densify, reconstruct_hop
+from rvs_server.hopping.sfm import HopReconstruction, SfmConfig, densify, reconstruct_hop_quietly
 from rvs_server.hopping.store import HopObservation, cloud_of, load_observation
 from rvs_server.products.ply import read_ply
 from rvs_server.workflow import Operations, StepContext, StepParams
@@ -101,7 +101,9 @@ def reconstruct_cleanly(step: StepContext, observation: HopObservation, params: 
                       f"{number}: {len(observation.frames)} frames of {params.hop}")
         config = SfmConfig(max_features=params.sfm_max_features, first_octave=octave, mapper=mapper,
                            num_threads=params.sfm_threads)
-        sfm = reconstruct_hop(observation.frames, observation.timestamps, observation.camera, workdir, config)
+        # COLMAP in the native worker: a crash there ends this job, not the server (rvs_server/native.py)
+        sfm = step.native(reconstruct_hop_quietly, observation.frames, observation.timestamps, observation.camera,
+                          workdir, config)
         share, problem = flight_check(observation, sfm, check)
         attempts.append({"mapper": mapper, "first_octave": octave, "registered": int(sfm.registered.sum()),
                          "fit_share": round(share, 4), "problem": problem,
@@ -135,7 +137,7 @@ def dense(step: StepContext, params: HopParams, sfm: dict) -> dict[str, Any]:
     observation = observation_of(step, params.hop)
     reconstruction = sfm["reconstruction"]
     step.progress(0.0, f"dense cloud: pairs of {int(reconstruction.registered.sum())} registered frames, SGBM")
-    points, colours = densify(observation.frames, reconstruction, observation.camera)
+    points, colours = step.native(densify, observation.frames, reconstruction, observation.camera)
     return {"points": points, "colours": colours}
 
 

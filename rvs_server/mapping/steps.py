@@ -267,7 +267,7 @@ def localise(step: StepContext, params: AlignParams, points: dict) -> dict[str, 
         reference = np.load(Path(params.reference))
         config = AlignConfig(max_translation_m=params.max_translation_m, max_rotation_deg=params.max_rotation_deg,
                              min_fitness=params.min_fitness)
-        alignment = align_to_map(points["points"], reference, np.array([pose.x, pose.y, pose.z]), config)
+        alignment = step.native(align_to_map, points["points"], reference, np.array([pose.x, pose.y, pose.z]), config)
         reason = alignment.reason
     correction = alignment.correction if alignment is not None else np.eye(4)
     summary = {key: float(getattr(alignment, key)) if alignment is not None else 0.0
@@ -291,7 +291,7 @@ def grid(step: StepContext, params: GridParams, points: dict) -> dict[str, Any]:
     if len(cloud) == 0:
         raise ValueError("no points to make a DEM from (every view was empty or filtered out)")
     spec = dem_tools.grid_covering(cloud, params.cell, margin=params.cell)
-    dem = dem_tools.points_to_dem(cloud, spec)
+    dem = step.native(dem_tools.points_to_dem, cloud, spec)
     return {"spec": dem.spec, "heights": dem.heights, "counts": dem.counts}
 
 
@@ -342,7 +342,7 @@ class HazardParams(StepParams):
 def hazards(step: StepContext, params: HazardParams, dem: dict) -> dict[str, Any]:
     """Slope, step and roughness from local plane fits, and the hazard map; unknown stays unknown."""
     config = hazard_tools.HazardConfig(**params.model_dump())
-    maps = hazard_tools.hazard_maps(dem["heights"], dem["spec"].cell, config)
+    maps = step.native(hazard_tools.hazard_maps, dem["heights"], dem["spec"].cell, config)
     return {"slope_deg": maps.slope_deg, "step": maps.step, "roughness": maps.roughness, "code": maps.code}
 
 

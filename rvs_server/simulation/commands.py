@@ -31,17 +31,22 @@ if TYPE_CHECKING:
 
 module = Module("simulation", summary="the simulated world: injected device faults, the sun, obstacles no map knew")
 
-FaultDevice = Literal["ptu", "tof", "camera-left", "camera-right", "trigger"]
-assert set(FaultDevice.__args__) == set(FAULT_DEVICES)  # one list of devices, drivers/sim/faults.py's
+FaultDevice = Literal["ptu", "tof", "camera-left", "camera-right", "trigger", "worker"]
+# one list of devices, drivers/sim/faults.py's, and the native worker (rvs_server/native.py)
+assert set(FaultDevice.__args__) == set(FAULT_DEVICES) | {"worker"}
+WORKER_KINDS = ("segv", "abrt", "kill", "memory")
 
 
 class SimFaultConfig(CommandConfig):
     device: FaultDevice | None = Field(None, description="the emulated device to break (or, with --clear, to "
                                        "mend; --clear alone mends every one)")
     after: int | None = Field(None, ge=0, le=1_000_000, description="requests it still answers first (PTU "
-                              "commands, SR4000 frames, camera frames, trigger pulses); default 0: fails from now")
-    kind: Literal["silent"] | None = Field(None, description="how it fails; silent (default): it answers nothing "
-                                           "until cleared")
+                              "commands, SR4000 frames, camera frames, trigger pulses; the worker's steps); "
+                              "default 0: fails from now")
+    kind: Literal["silent", "segv", "abrt", "kill", "memory"] | None = Field(
+        None, description="how it fails; a device: silent (default), it answers nothing until cleared; the worker: "
+        "segv (default), abrt or kill, a real signal in the native worker at that step, or memory, that step "
+        "allocates past server.toml worker_memory_mb")
     clear: bool = Field(False, description="remove the fault; the device answers again (reset, then continue)")
 
 
@@ -69,8 +74,13 @@ def validate_fault(server: Host, cfg: SimFaultConfig) -> None:
             raise BadRequest("sim-fault: --clear takes no --after or --kind (it removes the fault; "
                              "sim-fault --device D --after N arms one)")
     elif cfg.device is None:
-        raise BadRequest(f"sim-fault: give --device ({', '.join(FAULT_DEVICES)}) with --after N and --kind "
-                         f"silent, or --clear [--device D]")
+        raise BadRequest(f"sim-fault: give --device ({', '.join(FAULT_DEVICES)}, worker) with --after N and --kind "
+                         f"silent (worker: segv, abrt, kill), or --clear [--device D]")
+    elif cfg.kind is not None and cfg.kind not in (WORKER_KINDS if cfg.device == "worker" else ("silent",)):
+        allowed = ", ".join(WORKER_KINDS) if cfg.device == "worker" else "silent"
+        raise BadRequest(f"sim-fault: --kind = {cfg.kind!r} does not apply to --device {cfg.device}: {allowed}")
+    if cfg.device == "worker":      # a crash switch of our own process, with real devices as well
+        return
     devices = [cfg.device] if cfg.device else list(FAULT_DEVICES)
     refusals = [why for why in (_emulated(server, d) for d in devices) if why]
     if refusals and len(refusals) == len(devices):  # --clear alone mends whichever devices are emulated
@@ -80,11 +90,21 @@ def validate_fault(server: Host, cfg: SimFaultConfig) -> None:
 @module.immediate("sim-fault", SimFaultConfig, validate=validate_fault)
 def sim_fault(call: Call, cfg: SimFaultConfig) -> dict[str, Any]:
     """Break an emulated device (it stops answering after N more requests) or mend it (--clear)."""
+    native = call.server.native
+    if cfg.device == "worker":
+        if cfg.clear:
+            native.faults.clear()
+            return {"cleared": "worker"}
+        native.faults.arm(cfg.kind or "segv", cfg.after or 0)
+        return {"device": "worker", "kind": cfg.kind or "segv", "after": cfg.after or 0, "state": "armed",
+                "steps": native.steps}
     faults = call.server.devices.testbed.faults
     if cfg.clear:
         cleared = [cfg.device] if cfg.device else [d for d in FAULT_DEVICES if not _emulated(call.server, d)]
         for device in cleared:
             faults[device].clear()
+        if cfg.device is None:
+            native.faults.clear()
         return {"cleared": " ".join(cleared), "next": "reset, then continue"}
     switch = faults[cfg.device]
     switch.arm(after=cfg.after or 0, kind=cfg.kind or "silent")

@@ -192,9 +192,10 @@ def test_hop_plan_tries_each_sfm_setting_and_refuses_a_flight_none_makes_clean(s
 
 def test_break_and_continue_resume_hop_plan_at_the_step_and_give_the_same_product(server_factory, tmp_path,
                                                                                   first_plan):
-    """hop-plan broken after its dense step: continue takes the reconstruction and the dense cloud from
-    their checkpoints, runs the estimate and the plan, and writes what an uninterrupted run writes (the
-    module's first hop-plan, on a fresh server with the same files)."""
+    """hop-plan broken in its dense step: the break stops the step in the native worker at once (the
+    worker is killed), so continue takes the reconstruction from its checkpoint, makes the dense cloud
+    again (unless it was done before the break arrived), runs the estimate and the plan, and writes what
+    an uninterrupted run writes (the module's first hop-plan, on a fresh server with the same files)."""
     hop = "hop --speed 1.5 --elevation 60 --heading 0"
     assert pairs(first_plan.hop[0])["product"] == "hop-001", first_plan.hop[0]
     line, progress = first_plan.plan
@@ -213,14 +214,33 @@ def test_break_and_continue_resume_hop_plan_at_the_step_and_give_the_same_produc
         line, resumed = command(c, "continue", timeout=240)
     assert {k: v for k, v in pairs(line).items() if k not in ("job", "path")} == \
         {k: v for k, v in reference.items() if k not in ("job", "path")}, (line, reference)
-    assert not [p for p in resumed if "structure from motion" in p or "dense cloud" in p], resumed
+    assert not [p for p in resumed if "structure from motion" in p], resumed
     assert [p for p in resumed if "step 3/4 estimate" in p], resumed
     folder = broken.data_dir / "products" / "hop-plan-001"
     manifest = json.loads((folder / "product.json").read_text())
     steps = {s["step"]: s["resumed"] for s in manifest["workflow"]["steps"]}
-    assert steps == {"sfm": True, "dense": True, "estimate": False, "plan": False}, steps
+    assert steps["sfm"] and not steps["estimate"] and not steps["plan"], steps
+    assert steps["dense"] == (not [p for p in resumed if "dense cloud" in p]), (steps, resumed)
     assert {"sfm", "dense", "estimate", "plan", "write"} <= set(manifest["timings_s"])
     assert_same_product(first_plan.reference, folder)
+
+
+def test_a_segfault_in_colmap_ends_hop_plan_not_the_server_and_continue_gives_the_same_product(
+        server_factory, tmp_path, first_plan):
+    """COLMAP runs in the native worker (rvs_server/native.py): a real SIGSEGV there is one ERR 500, the
+    server answers on, and `continue` reconstructs again and writes what an uninterrupted run writes."""
+    crashed = server_factory(data_dir=tmp_path / "crashed", configs={"hopping.toml": HOPPING})
+    pid = crashed.proc.pid
+    with crashed.connect(timeout=300) as c:
+        assert pairs(c.command("hop --speed 1.5 --elevation 60 --heading 0", timeout=120))["product"] == "hop-001"
+        assert pairs(c.command("sim-fault --device worker --kind segv"))["state"] == "armed"
+        reply, _ = command(c, "hop-plan", timeout=240)
+        assert "ERR 500 internal worker died: signal 11 (SIGSEGV) during sfm; recovery set kept" in reply, reply
+        assert pairs(c.command("status"))["mode"] == "break" and crashed.proc.pid == pid and crashed.proc.poll() is None
+        line, _ = command(c, "continue", timeout=240)
+    assert {k: v for k, v in pairs(line).items() if k not in ("job", "path")} == \
+        {k: v for k, v in pairs(first_plan.plan[0]).items() if k not in ("job", "path")}, line
+    assert_same_product(first_plan.reference, crashed.data_dir / "products" / "hop-plan-001")
 
 
 def assert_same_product(a: Path, b: Path) -> None:
