@@ -37,16 +37,41 @@ def browser():
         browser.close()
 
 
-def test_page_shows_a_text_port_job_live(server_factory, tmp_path, browser):
+class Watched:
+    """What a page asked for, what was refused and its script errors, gathered as it runs."""
+
+    def __init__(self, page):
+        self.requests, self.refused, self.errors, self.responses = [], [], [], []
+        page.on("request", lambda r: self.requests.append(r.url))
+        page.on("response", self._response)
+        page.on("pageerror", lambda e: self.errors.append(str(e)))
+
+    def _response(self, r) -> None:
+        self.responses.append((r.status, r.url, r.headers.get("content-type", "")))
+        if r.status >= 400:
+            self.refused.append(f"{r.status} {r.url}")
+
+    def assert_only_the_server(self, host: str, token: str | None = TOKEN) -> None:
+        """Every request went to the server (no other host), with the token; none refused, no script error."""
+        urls = [u for u in self.requests if not u.startswith("data:")]
+        assert urls and all(urlsplit(u).netloc == host for u in urls), urls
+        if token:
+            assert all(f"token={token}" in u for u in urls), urls
+        assert not self.refused, self.refused
+        assert not self.errors, self.errors
+
+
+def start_with_token(server_factory, tmp_path, args: list[str] | None = None):
     token_file = tmp_path / "token"
     token_file.write_text(TOKEN + "\n")
     token_file.chmod(0o600)
-    server = server_factory(args=["--token-file", str(token_file), "--web-port", str(free_port())])
+    return server_factory(args=["--token-file", str(token_file), "--web-port", str(free_port()), *(args or [])])
+
+
+def test_page_shows_a_text_port_job_live(server_factory, tmp_path, browser):
+    server = start_with_token(server_factory, tmp_path)
     page = browser.new_page(viewport={"width": 1400, "height": 950})
-    requests, refused, errors = [], [], []
-    page.on("request", lambda r: requests.append(r.url))
-    page.on("response", lambda r: refused.append(f"{r.status} {r.url}") if r.status >= 400 else None)
-    page.on("pageerror", lambda e: errors.append(str(e)))
+    watched = Watched(page)
 
     page.goto(f"http://{server.web}/?token={TOKEN}")
     page.wait_for_selector("#link.up", timeout=15000)          # the event stream is open
@@ -77,8 +102,4 @@ def test_page_shows_a_text_port_job_live(server_factory, tmp_path, browser):
     sync_api.expect(page.locator("#events li.t-progress")).not_to_have_count(0)
 
     page.screenshot(path=SCREENSHOT, full_page=True)
-    host = server.web
-    assert requests and all(urlsplit(u).netloc == host for u in requests if not u.startswith("data:")), requests
-    assert all(f"token={TOKEN}" in u for u in requests if not u.startswith("data:")), requests
-    assert not refused, refused
-    assert not errors, errors
+    watched.assert_only_the_server(server.web)

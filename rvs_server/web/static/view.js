@@ -189,11 +189,22 @@
       if (s.job !== "none" && state.progress.job !== s.job) {
         state.progress = { job: s.job, command: s.command, percent: num(s.percent) || 0, message: "" };
       }
+      markEnded();
       redraw("status"); redraw("header");
     }).catch(function (err) { console.warn(err); }).finally(function () {
       statusBusy = false;
       if (statusAgain) { statusAgain = false; window.setTimeout(refreshStatus, 300); }
     });
+  }
+  // A job's last progress line is rarely 100 % (navigate stops at 98 when it arrives): once the job has
+  // ended and its product is complete, the bar says so, instead of staying at the last figure.
+  function markEnded() {
+    const p = state.progress, s = state.status;
+    if (!p.job || s.job !== "none" || s.mode === "busy" || num(p.percent) >= 100) return false;
+    const done = state.products.find(function (q) { return String(q.job) === String(p.job) && q.status === "complete"; });
+    if (!done) return false;
+    state.progress = { job: p.job, command: p.command, percent: 100, message: "done: product " + done.name };
+    return true;
   }
   let productsTimer = 0;
   function refreshProductsSoon() {
@@ -203,6 +214,7 @@
   function refreshProducts() {
     getJSON("/api/products?limit=" + PRODUCTS).then(function (r) {
       state.products = Array.isArray(r.products) ? r.products : [];
+      if (markEnded()) redraw("header");
       chooseMap();
       loadTraverseProduct();
       redraw("products");
@@ -313,6 +325,7 @@
       ctx.fillStyle = "#8b95a3"; ctx.font = "13px system-ui, sans-serif";
       ctx.fillText("no map yet: a mapping, navigate or hop product with a grid appears here", 14, 24);
       $("map-note").textContent = "";
+      exposeDrawn(canvas, null, null);
       return;
     }
     let x0 = Infinity, y0 = Infinity, x1 = -Infinity, y1 = -Infinity;
@@ -375,6 +388,27 @@
     if (nav.fromProduct) notes.push("path of " + nav.fromProduct);
     else if (nav.live) notes.push("navigate job " + nav.job + " live");
     $("map-note").textContent = notes.join(" \u00b7 ");
+    exposeDrawn(canvas, X, Y);
+  }
+  // What the map shows, in data attributes of the canvas (canvas pixels, CSS px): for the browser tests,
+  // which may not run scripts in the page (its policy), and for anyone inspecting the page.
+  function exposeDrawn(canvas, X, Y) {
+    const nav = state.nav, map = state.map, ds = canvas.dataset;
+    function px(points) {
+      if (!X) return "";
+      const step = Math.max(1, Math.ceil(points.length / 200));
+      return points.filter(function (p, i) { return i % step === 0 || i === points.length - 1; })
+        .map(function (p) { return Math.round(X(p[0])) + "," + Math.round(Y(p[1])); }).join(" ");
+    }
+    function xy(p) { return p ? p[0].toFixed(2) + "," + p[1].toFixed(2) : ""; }
+    ds.map = map && map.image ? map.product + "/" + map.file : "";
+    ds.driven = String(nav.driven.length);
+    ds.planned = String(nav.planned.length);
+    ds.goal = xy(nav.goal);
+    ds.pose = xy(nav.pose);
+    ds.drivenPx = px(nav.driven);
+    ds.plannedPx = px(nav.planned);
+    ds.source = nav.fromProduct ? "product " + nav.fromProduct : nav.live ? "live " + nav.job : "";
   }
   function drawGrid(ctx, x0, x1, y0, y1, X, Y, scale, w, h) {
     const spans = [0.5, 1, 2, 5, 10, 20, 50, 100];
