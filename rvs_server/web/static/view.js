@@ -260,13 +260,22 @@
   }
 
   // ---------------------------------------------------------------------------------- the map
-  // The newest product with a gridded picture: NAME.png beside a NAME.tif whose grid is in product.json.
+  // The newest product with a gridded picture: NAME.png beside a NAME.tif whose grid is in product.json,
+  // or a picture drawn on the grid of a GeoTIFF of another name (hop-map: map.png on hops-per-cell.tif).
+  const PICTURE_OF = { "hops-per-cell.tif": "map.png" };
+  function pictureOf(p, tif) {
+    const files = p.files || {}, same = tif.replace(/\.tiff?$/i, ".png");
+    if (files[same] !== undefined) return same;
+    const base = tif.split("/").pop(), other = PICTURE_OF[base];
+    const path = other ? tif.slice(0, tif.length - base.length) + other : null;
+    return path && files[path] !== undefined ? path : null;
+  }
   function chooseMap() {
     const rank = ["ortho", "hazard", "dem"];
     for (const p of state.products) {
       const grids = p.grids || {};
       const candidates = Object.keys(grids).filter(function (t) {
-        return t.indexOf("truth/") < 0 && (p.files || {})[t.replace(/\.tiff?$/i, ".png")] !== undefined;
+        return t.indexOf("truth/") < 0 && pictureOf(p, t) !== null;
       });
       if (!candidates.length) continue;
       candidates.sort(function (a, b) {
@@ -275,7 +284,7 @@
         const ra = rank.indexOf(a.split("/").pop().replace(/\.tiff?$/i, "")), rb = rank.indexOf(b.split("/").pop().replace(/\.tiff?$/i, ""));
         return (ra < 0 ? 99 : ra) - (rb < 0 ? 99 : rb);
       });
-      const tif = candidates[0], file = tif.replace(/\.tiff?$/i, ".png");
+      const tif = candidates[0], file = pictureOf(p, tif);
       if (state.map && state.map.product === p.name && state.map.file === file) return;
       const map = { product: p.name, file: file, grid: grids[tif], image: null, src: null };
       const img = new Image();
@@ -287,12 +296,15 @@
       return;
     }
   }
-  // RVS's map pictures are the grid north up, enlarged by a whole factor (to 480 px at least), under a
-  // 22 px title strip and above a legend strip (toolbox/colour.py): the part that is the grid.
+  // RVS's map pictures are the grid north up, enlarged by a whole factor (to 480 px at least, the hop
+  // maps to 640), under a 22 px title strip and above a legend strip (toolbox/colour.py): the part that
+  // is the grid.
   function mapRegion(img, grid) {
     const w = img.naturalWidth, h = img.naturalHeight;
     if (w === grid.cols && h === grid.rows) return [0, 0, w, h];
-    const f = Math.max(1, Math.ceil(480 / Math.max(grid.rows, grid.cols)));
+    const factors = [480, 640].map(function (size) { return Math.max(1, Math.ceil(size / Math.max(grid.rows, grid.cols))); });
+    const exact = factors.find(function (f) { return grid.cols * f === w && 22 + grid.rows * f <= h; });
+    const f = exact || factors[0];
     if (grid.cols * f <= w && 22 + grid.rows * f <= h) return [0, 22, grid.cols * f, grid.rows * f];
     const g = Math.max(1, Math.floor(w / grid.cols));
     return [0, Math.max(0, Math.min(22, h - grid.rows * g)), grid.cols * g, Math.min(h, grid.rows * g)];
