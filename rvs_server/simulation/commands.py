@@ -75,7 +75,7 @@ def validate_fault(server: Host, cfg: SimFaultConfig) -> None:
                              "sim-fault --device D --after N arms one)")
     elif cfg.device is None:
         raise BadRequest(f"sim-fault: give --device ({', '.join(FAULT_DEVICES)}, worker) with --after N and --kind "
-                         f"silent (worker: segv, abrt, kill), or --clear [--device D]")
+                         f"silent (worker: {', '.join(WORKER_KINDS)}), or --clear [--device D]")
     elif cfg.kind is not None and cfg.kind not in (WORKER_KINDS if cfg.device == "worker" else ("silent",)):
         allowed = ", ".join(WORKER_KINDS) if cfg.device == "worker" else "silent"
         raise BadRequest(f"sim-fault: --kind = {cfg.kind!r} does not apply to --device {cfg.device}: {allowed}")

@@ -217,10 +217,11 @@ def test_sim_fault_names_what_is_wrong_and_refuses_devices_that_are_not_emulated
         assert "sim-fault" in pairs(c.command("help"))["commands"].split()
         assert "camera-left" in pairs(c.command("help sim-fault"))["opt.device"]
         refused = {
-            "sim-fault": "400 bad-request sim-fault: give --device (ptu, tof, camera-left, camera-right, trigger)",
+            "sim-fault": "400 bad-request sim-fault: give --device (ptu, tof, camera-left, camera-right, trigger, "
+                         "worker) with --after N and --kind silent (worker: segv, abrt, kill, memory)",
             "sim-fault --device lens": "400 bad-request sim-fault: --device = 'lens'",
             "sim-fault --device tof --after -1": "--after = '-1': Input should be greater than or equal to 0",
-            "sim-fault --device tof --kind loud": "--kind = 'loud': Input should be 'silent'",
+            "sim-fault --device tof --kind loud": "--kind = 'loud': Input should be 'silent', 'segv'",
             "sim-fault --clear --after 2": "--clear takes no --after or --kind",
             "sim-fault --device ptu": "409 wrong-mode sim-fault: the ptu is off (devices.toml [ptu] enabled = false)",
         }
