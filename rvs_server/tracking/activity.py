@@ -5,7 +5,8 @@ one frame where the unit stands (read before and after: it may still be turning)
 back; make world points of it and the person candidates (toolbox/tracking); predict the track to the
 frame's instant and take the nearest candidate inside the gate that is person-like enough (a rock may
 hide the legs, so less than the search asks); none: the track coasts on its prediction, and after
-`max_coast_s` unseen it is lost: the PTU sweeps the pan (lost_sweep_pan_deg) and any clearly
+`max_coast_s` unseen, or once the prediction leaves the sensor's range, it is lost: the PTU holds on
+where it was last for `max_coast_s`, then sweeps the pan (lost_sweep_pan_deg), and any clearly
 person-like candidate in view takes the target up again (the same target: one person, one
 identity). Then borrow the PTU once more and point it where the
 target will be at the next frame, if the aim is off by more than the dead band, at a speed that gets
@@ -77,6 +78,7 @@ class TrackActivity(Activity):
         self.ground_z = target.z
         self._heights: list[float] = [target.height]
         self.lost = False
+        self._lost_s = -math.inf                  # when it was lost (simulation seconds)
         self._sweep_to: float | None = None       # lost: the pan end the PTU sweeps to
         self._sightings: list[tuple[float, np.ndarray]] = []   # acquiring: the last frame's whole people
         self.records: list[TrackRecord] = []
@@ -127,8 +129,8 @@ class TrackActivity(Activity):
                 track.update(chosen.xy, self._measurement_cov(seen, chosen))
                 self._ground(chosen, seen)
                 return chosen
-            if track.lost:
-                self._lose()
+            if track.lost or self._beyond_range(seen):
+                self._lose(seen)
             return None
         # Acquiring (after the start) or lost: only a whole person (not cut by the edge of the view,
         # where a boulder's part can look like one), seen as one in two frames running, takes it up.
@@ -144,7 +146,7 @@ class TrackActivity(Activity):
                 self._ground(chosen, seen)
                 return chosen
             if track.unseen_s() > settings.acquire_s:
-                self._lose()
+                self._lose(seen)
             return None
         if not confirmed:
             return None
@@ -172,9 +174,16 @@ class TrackActivity(Activity):
         return [c for c in people
                 if any(np.linalg.norm(c.xy - xy) <= CONFIRM_M + speed * (seen.sim_s - t) for t, xy in before)]
 
-    def _lose(self) -> None:
+    def _beyond_range(self, seen: Seen) -> bool:
+        """The unseen target's prediction has left the sensor's range: no frame can confirm it there,
+        and coasting on follows only an extrapolation (the campaign's walkers stood still out there,
+        while the estimate walked on: every such frame a false positive)."""
+        return float(np.linalg.norm(self.track.position - seen.sensor_xy)) > self.settings.max_range_m
+
+    def _lose(self, seen: Seen) -> None:
         self.lost, self.locked = True, False
         self.track.state[2:] = 0.0        # hold where it was last believed while the PTU sweeps
+        self._lost_s = seen.sim_s
 
     def _ground(self, chosen: Candidate, seen: Seen) -> None:
         """The target's ground height. Far off, a range sensor sees little ground round the feet
@@ -201,10 +210,14 @@ class TrackActivity(Activity):
         """Point the PTU where the target will be at the next frame; the command sent, or why none."""
         if self.lost:
             return self._look_around(devices, seen)
+        state, _ = self.track.predicted(seen.sim_s + 1.0 / self.rate_hz)
+        return self._aim_at(devices, seen, state[:2])
+
+    def _aim_at(self, devices: Any, seen: Seen, xy: np.ndarray) -> str:
+        """Point the PTU at a person standing at xy, within a frame period and the unit's speeds."""
         settings = self.settings
         period = 1.0 / self.rate_hz
-        state, _ = self.track.predicted(seen.sim_s + period)
-        aim_at = np.array([state[0], state[1], self.ground_z + settings.aim_height_m])
+        aim_at = np.array([xy[0], xy[1], self.ground_z + settings.aim_height_m])
         pan, tilt = self.sight.aim(seen.pose, aim_at)
         low, high = settings.tilt_limits_deg
         tilt = float(np.clip(tilt, low, high))
@@ -229,6 +242,9 @@ class TrackActivity(Activity):
         """Lost: sweep the pan between the search's limits at the search tilt, the frames looking for
         a person all the while (the reacquisition), first towards where the target was last."""
         settings = self.settings
+        if seen.sim_s - self._lost_s < settings.max_coast_s:
+            # First where it was last: a walker gone out of range or behind a rock comes back there.
+            return self._aim_at(devices, seen, self.track.position)
         low, high = settings.lost_sweep_pan_deg
         tilt = settings.search_tilt_deg.of(self.sensor)
         if self._sweep_to is None:

@@ -59,6 +59,9 @@ RANGE_M = 9.5          # tracking.toml max_range_m
 DETECT_TRIES = 3       # searches before a scene counts as not found (the person may be out of range)
 BANDS = ((0.0, 4.0), (4.0, 6.0), (6.0, 8.0), (8.0, 10.0))
 RESULTS = Path(__file__).resolve().parent / "results" / "track.jsonl"
+# The tracker's revision, part of the results' settings so a changed tracker is measured anew (the
+# runs of 2026-12-06 before it were made with the track coasting past the sensor's range).
+TRACKER = "lost-past-range"
 
 
 def world_toml(seed: int) -> str:
@@ -302,7 +305,7 @@ def main() -> None:
         print(report(args.report))
         return
     args.out.mkdir(parents=True, exist_ok=True)
-    log = RunLog(args.results, {"seconds": args.seconds})
+    log = RunLog(args.results, {"seconds": args.seconds, "tracker": TRACKER})
     if args.rescore:
         results = [rescored({**r, **r["run"]}) for r in log.runs() if r["run"]["sensor"] == args.sensor and "error" not in r]
         print(format_summary(summarise(results, args.sensor)))
