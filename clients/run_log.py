@@ -17,7 +17,7 @@ import json
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any, Callable, Iterable
 
 
 def read_runs(path: Path) -> list[dict[str, Any]]:
@@ -113,3 +113,20 @@ def group_by_settings(records: Iterable[dict[str, Any]]) -> list[tuple[dict[str,
 def describe(settings: dict[str, Any]) -> str:
     """`key=value ...` of a settings dict, for a report's heading."""
     return " ".join(f"{key}={value}" for key, value in sorted(settings.items()))
+
+
+def report(path: Path, summarise: Callable[[list[dict[str, Any]], str], str]) -> str:
+    """A results file's summary from the file alone, one block per settings: a heading (the runs and
+    their seconds), `summarise(finished runs, sensor)` per sensor (each run's scores with its `run`
+    keys merged in), and the runs that broke."""
+    records = read_runs(path)
+    if not records:
+        return f"{path}: no runs"
+    blocks = []
+    for settings, runs in group_by_settings(records):
+        finished = [{**r, **r["run"]} for r in runs if "error" not in r]
+        lines = [f"== {describe(settings)}: {len(finished)} runs, {sum(r['seconds'] for r in runs):.0f} s"]
+        lines += [summarise(finished, sensor) for sensor in sorted({r["sensor"] for r in finished})]
+        lines += [f"  {r['run']['sensor']} seed {r['run']['seed']} broke: {r['error'][:200]}" for r in runs if "error" in r]
+        blocks.append("\n".join(lines))
+    return "\n\n".join(blocks)

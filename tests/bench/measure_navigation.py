@@ -40,7 +40,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO / "tests"))
 sys.path.insert(0, str(REPO))
-from clients.run_log import RunLog, describe, group_by_settings, read_runs  # noqa: E402
+from clients.run_log import RunLog, report  # noqa: E402
 from conftest import ServerProcess, pairs  # noqa: E402
 from drivers.sim.config import WorldConfig  # noqa: E402
 from drivers.sim.world import World  # noqa: E402
@@ -215,21 +215,6 @@ def summarise(results: list[dict], sensor: str) -> str:
     return "\n".join(lines)
 
 
-def report(path: Path) -> str:
-    """The summary of a results file, per settings and sensor, from the file alone."""
-    records = read_runs(path)
-    if not records:
-        return f"{path}: no runs"
-    blocks = []
-    for settings, runs in group_by_settings(records):
-        finished = [{**r, **r["run"]} for r in runs if "error" not in r]
-        lines = [f"== {describe(settings)}: {len(finished)} runs, {sum(r['seconds'] for r in runs):.0f} s"]
-        lines += [summarise(finished, sensor) for sensor in sorted({r["sensor"] for r in finished})]
-        lines += [f"  scene {r['run']['seed']} {r['run']['sensor']} broke: {r['error'][:200]}" for r in runs if "error" in r]
-        blocks.append("\n".join(lines))
-    return "\n\n".join(blocks)
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--scenes", type=int, default=30)
@@ -246,7 +231,7 @@ def main() -> None:
                         "look between the moves")
     args = parser.parse_args()
     if args.report:
-        print(report(args.report))
+        print(report(args.report, summarise))
         return
     args.out.mkdir(parents=True, exist_ok=True)
     log = RunLog(args.results, {"size_m": args.size, "orient": args.orient})
@@ -281,7 +266,7 @@ def main() -> None:
                   f"{result['driven_m']:.1f} m driven for {result['optimal_m']:.1f} m optimal, contacts "
                   f"{result['contacts']}, localisation {100 * result['localisation_error_m']:.1f} cm "
                   f"(odometry {100 * result['odometry_error_m']:.1f} cm), {result['seconds']:.0f} s", flush=True)
-    print(report(args.results))
+    print(report(args.results, summarise))
 
 
 if __name__ == "__main__":

@@ -41,7 +41,7 @@ REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO / "tests"))
 sys.path.insert(0, str(REPO))
 
-from clients.run_log import RunLog, describe, group_by_settings, read_runs  # noqa: E402
+from clients.run_log import RunLog, report  # noqa: E402
 from conftest import ServerProcess, pairs, write_configs  # noqa: E402
 from drivers.sim.motion import dead_reckon  # noqa: E402
 
@@ -251,24 +251,6 @@ def summarise(results: list[dict], sensor: str) -> str:
     return "\n".join(lines)
 
 
-def report(path: Path) -> str:
-    """The summary tables of a results file, one per settings and sensor, from the file alone."""
-    records = read_runs(path)
-    if not records:
-        return f"{path}: no runs"
-    blocks = []
-    for settings, runs in group_by_settings(records):
-        finished = [r for r in runs if "error" not in r]
-        lines = [f"== {describe(settings)}: {len(finished)} runs, {sum(r['seconds'] for r in runs):.0f} s"]
-        for sensor in sorted({r["run"]["sensor"] for r in finished}):
-            lines.append(summarise([{**r, **r["run"]} for r in finished], sensor))
-        for r in runs:
-            if "error" in r:
-                lines.append(f"  {r['run']['sensor']} seed {r['run']['seed']} broke: {r['error'][:200]}")
-        blocks.append("\n".join(lines))
-    return "\n\n".join(blocks)
-
-
 def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--seeds", type=int, nargs="+", default=list(range(1, 21)))
@@ -283,7 +265,7 @@ def main() -> None:
     parser.add_argument("--verbose", action="store_true", help="a line per look")
     args = parser.parse_args()
     if args.report:
-        print(report(args.report))
+        print(report(args.report, summarise))
         return
     args.out.mkdir(parents=True, exist_ok=True)
     log = RunLog(args.results, {"length_m": args.length, "max_turn_deg": args.max_turn})
@@ -307,7 +289,7 @@ def main() -> None:
             print(f"{task['sensor']} seed {task['seed']}: {len(result['looks'])} looks, {record['failed']} failed, "
                   f"end {record.get('orient_end_pct', float('nan')):.2f} % (dead reckoning "
                   f"{record.get('dead_reckoning_end_pct', float('nan')):.2f} %), {seconds:.0f} s", flush=True)
-    print(report(args.results))
+    print(report(args.results, summarise))
     print(f"campaign took {time.perf_counter() - started:.0f} s")
 
 

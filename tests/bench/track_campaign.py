@@ -49,7 +49,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 import conftest  # noqa: E402
-from clients.run_log import RunLog, describe, group_by_settings, read_runs  # noqa: E402
+from clients.run_log import RunLog, report  # noqa: E402
 from conftest import ServerProcess, pairs, write_configs  # noqa: E402
 
 VISIBLE = 0.5          # share of the body axis in view that makes the person ground truth
@@ -254,19 +254,9 @@ def summarise(results: list[dict], sensor: str) -> dict:
     }
 
 
-def report(path: Path) -> str:
-    """The summary per settings and sensor of a results file, from the file alone."""
-    records = read_runs(path)
-    if not records:
-        return f"{path}: no runs"
-    blocks = []
-    for settings, runs in group_by_settings(records):
-        finished = [{**r, **r["run"]} for r in runs if "error" not in r]
-        for sensor in sorted({r["sensor"] for r in finished}):
-            summary = summarise([r for r in finished if r["sensor"] == sensor], sensor)
-            blocks.append(f"== {describe(settings)} sensor={sensor}\n" + format_summary(summary))
-        blocks += [f"  {r['run']['sensor']} seed {r['run']['seed']} broke: {r['error'][:200]}" for r in runs if "error" in r]
-    return "\n\n".join(blocks)
+def sensor_table(runs: list[dict], sensor: str) -> str:
+    """One sensor's summary table (run_log.report's per-sensor part)."""
+    return f"{sensor}:\n" + format_summary(summarise([r for r in runs if r["sensor"] == sensor], sensor))
 
 
 def format_summary(s: dict) -> str:
@@ -302,7 +292,7 @@ def main() -> None:
                         "track.csv files (their work folders must still be there)")
     args = parser.parse_args()
     if args.report:
-        print(report(args.report))
+        print(report(args.report, sensor_table))
         return
     args.out.mkdir(parents=True, exist_ok=True)
     log = RunLog(args.results, {"seconds": args.seconds, "tracker": TRACKER})
@@ -331,7 +321,7 @@ def main() -> None:
             print(f"{args.sensor} seed {task['seed']}: MOTA {result['mota']:.3f} recall {result['recall']:.3f} "
                   f"precision {result['precision']:.3f} idsw {result['id_switches']} rmse {rmse:.3f} m "
                   f"fps {result['fps']:.1f} occlusions {result['reacquire_s']} ({seconds:.0f} s)", flush=True)
-    print(report(args.results))
+    print(report(args.results, sensor_table))
 
 
 if __name__ == "__main__":
