@@ -11,12 +11,13 @@ Screenshots of the page during and after the navigate go to RVS_WEBVIEW_SHOTS (d
 """
 from __future__ import annotations
 
-import io
 import os
 import re
 from pathlib import Path
 from urllib.parse import urlsplit
 
+import cv2
+import numpy as np
 import pytest
 
 from conftest import pairs
@@ -34,14 +35,14 @@ def canvas_points(text: str | None) -> list[tuple[int, int]]:
 
 def path_pixels_drawn(png: bytes, points: list[tuple[int, int]]) -> tuple[int, int]:
     """(segments whose midpoint has the path's white or yellow within 2 px, segments) in a canvas shot."""
-    from PIL import Image
-    image = Image.open(io.BytesIO(png)).convert("RGB")
-    w, h = image.size
+    # OpenCV decodes it (a chosen dependency); BGR flipped to RGB.
+    image = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)[:, :, ::-1]
+    h, w = image.shape[:2]
     seen = 0
     segments = [(a, b) for a, b in zip(points, points[1:]) if abs(a[0] - b[0]) + abs(a[1] - b[1]) >= 6]
     for a, b in segments:
         mx, my = (a[0] + b[0]) // 2, (a[1] + b[1]) // 2
-        near = [image.getpixel((x, y)) for x in range(mx - 2, mx + 3) for y in range(my - 2, my + 3)
+        near = [tuple(int(v) for v in image[y, x]) for x in range(mx - 2, mx + 3) for y in range(my - 2, my + 3)
                 if 0 <= x < w and 0 <= y < h]
         white = any(min(p) > 225 for p in near)                                   # driven: #ffffff
         yellow = any(p[0] > 220 and p[1] > 180 and p[2] < 110 for p in near)     # planned: #ffd33d
