@@ -19,6 +19,7 @@ import numpy as np
 
 from rvs_server import __version__
 from rvs_server.files import write_json_atomic
+from rvs_server.products.ply import ply_summary
 from rvs_server.products.rasters import geotiff_grid
 from rvs_server.protocol import BadRequest, check_safe_name
 
@@ -81,6 +82,9 @@ class Product:
         grids = self._grids()
         if grids:
             self.manifest["grids"] = grids
+        clouds = self._clouds()
+        if clouds:
+            self.manifest["clouds"] = clouds
         self.manifest["finished"] = time.strftime("%Y-%m-%dT%H:%M:%S%z")
         return write_json_atomic(self.path / "product.json", self.manifest, default=_jsonable)
 
@@ -101,6 +105,21 @@ class Product:
                 grids[relative] = {"origin": [round(spec.origin_x, 6), round(spec.origin_y, 6)],  # to the micrometre
                                    "cell": round(spec.cell, 6), "rows": spec.rows, "cols": spec.cols, "frame": "world"}
         return grids
+
+    def _clouds(self) -> dict[str, dict[str, Any]]:
+        """What each PLY cloud holds, so a reader can check it opened the whole cloud: points (the vertex
+        count) and min, max (each [x, y, z], metres, world frame, to the micrometre)."""
+        clouds = {}
+        for relative in self.manifest["files"]:
+            if not relative.endswith(".ply"):
+                continue
+            try:
+                summary = ply_summary(self.path / relative)
+            except (OSError, ValueError, KeyError):  # not written (yet), or not a PLY of ours
+                continue
+            if summary is not None:
+                clouds[relative] = summary
+        return clouds
 
 
 class ProductPart:

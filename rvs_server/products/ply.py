@@ -54,3 +54,16 @@ def read_ply(path: Path) -> np.ndarray:
         elif words[:1] == ["property"]:
             fields.append((words[2], _PLY_TYPES[words[1]]))
     return np.frombuffer(data, dtype=fields, count=count, offset=end)
+
+
+def ply_summary(path: Path) -> dict | None:
+    """What a PLY written by write_ply holds, for the product's manifest: the vertex count and the
+    bounds of x, y, z (metres, world frame); None for a file that is not such a PLY."""
+    vertices = read_ply(path)
+    if not {"x", "y", "z"} <= set(vertices.dtype.names or ()):
+        return None
+    xyz = np.stack([vertices[name] for name in "xyz"], axis=1)
+    if len(xyz) == 0:
+        return {"points": 0, "min": None, "max": None, "frame": "world"}
+    return {"points": int(len(xyz)), "min": [round(float(v), 6) for v in xyz.min(axis=0)],
+            "max": [round(float(v), 6) for v in xyz.max(axis=0)], "frame": "world"}
