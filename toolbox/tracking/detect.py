@@ -32,7 +32,7 @@ def candidates(points: np.ndarray, sensor_xy: np.ndarray, plane: Plane,
         return []
     ground = ground_of(points, plane, params)
     found = []
-    for cluster in standing_clusters(points, ground, params):
+    for cluster in standing_clusters(points, ground, params, sensor_xy):
         shape = shape_of(cluster, sensor_xy, model)
         confidence, terms = person_confidence(shape, model)
         found.append(Candidate(shape, confidence, terms, cluster.points))

@@ -13,6 +13,11 @@
 4. The ground under each cluster: a plane fitted to the raw ground points in a ring round it (the
    opening's lowest points sit low by the sensor's noise and on a slope by the slope across its
    window: centimetres that a person's height and z would carry), the grid's where too few.
+5. Seen from afar, that ring is grazing ground the sensor measures poorly (seeded scenes: 0.1-0.3 m
+   off at 7-9 m), while the feet themselves face the sensor: the lowest raw points in a column round
+   the legs are the ground they stand on (within 0.03 m at any range there). The ring stands in
+   only near, where it is measured well, and where the feet are hidden (a rock before them: the
+   column then starts well above the ring).
 """
 from __future__ import annotations
 
@@ -43,6 +48,10 @@ class StandingParams:
     min_points: int = 25
     ring: tuple[float, float] = (0.15, 1.0)   # m: the ground ring round a cluster's outline (step 4)
     ring_points: int = 30                     # fewer ground points there: the grid's height
+    feet_radius: float = 0.35    # m: the column round the legs whose lowest points are the feet (step 5)
+    feet_rank: int = 3           # the feet: this lowest point of the column (one stray return is not them)
+    ring_trusted_m: float = 6.0  # m: within this range of the sensor the ring's ground is measured well
+    feet_hidden_m: float = 0.1   # m: a column whose lowest points stand this far above the ring is hidden
 
 
 @dataclass(frozen=True)
@@ -167,9 +176,10 @@ def _ground_patches(lowest: np.ndarray, plane: Plane, spec: GridSpec, params: St
     return patches
 
 
-def standing_clusters(points: np.ndarray, ground: Ground,
-                      params: StandingParams = StandingParams()) -> list[Cluster]:
-    """The clusters of what stands more than `min_above` on the ground (step 2 and 3), largest first."""
+def standing_clusters(points: np.ndarray, ground: Ground, params: StandingParams = StandingParams(),
+                      sensor_xy: np.ndarray | None = None) -> list[Cluster]:
+    """The clusters of what stands more than `min_above` on the ground (steps 2 to 5: 5 with the
+    sensor's place), largest first."""
     if len(points) == 0:
         return []
     above = points[:, 2] - ground.under(points) > params.min_above
@@ -198,8 +208,10 @@ def standing_clusters(points: np.ndarray, ground: Ground,
         under_row = np.clip(under_row, 0, ground.spec.rows - 1)
         under_col = np.clip(under_col, 0, ground.spec.cols - 1)
         grid_z = float(np.median(ground.heights[under_row, under_col]))
-        clusters.append(Cluster(members, local_ground(points, ground, members, grid_z, params),
-                                bool(seen_near[under_row, under_col].any())))
+        ground_z = local_ground(points, ground, members, grid_z, params)
+        if sensor_xy is not None:
+            ground_z = feet_ground(points, members, ground_z, sensor_xy, params)
+        clusters.append(Cluster(members, ground_z, bool(seen_near[under_row, under_col].any())))
     return sorted(clusters, key=lambda c: -len(c.points))
 
 
@@ -228,3 +240,21 @@ def local_ground(points: np.ndarray, ground: Ground, members: np.ndarray, grid_z
         if keep.sum() < params.ring_points:
             return grid_z
     return float(coef[0])
+
+
+def feet_ground(points: np.ndarray, members: np.ndarray, ring_z: float, sensor_xy: np.ndarray,
+                params: StandingParams = StandingParams()) -> float:
+    """Step 5: the ground a cluster stands on from its feet (the `feet_rank` lowest raw point in a
+    column round the middle of its lower part), or `ring_z` where the ring is trusted and the feet
+    are hidden."""
+    lower = members[members[:, 2] <= members[:, 2].min() + 0.4 * (members[:, 2].max() - members[:, 2].min())]
+    middle = np.median(lower[:, :2], axis=0)
+    near = np.abs(points[:, 0] - middle[0]) <= params.feet_radius
+    near &= np.abs(points[:, 1] - middle[1]) <= params.feet_radius
+    column = points[near]
+    column = column[np.linalg.norm(column[:, :2] - middle, axis=1) <= params.feet_radius, 2]
+    if len(column) < params.feet_rank:
+        return ring_z
+    feet = float(np.partition(column, params.feet_rank - 1)[params.feet_rank - 1])
+    trusted = float(np.linalg.norm(middle - np.asarray(sensor_xy, dtype=float))) <= params.ring_trusted_m
+    return ring_z if trusted and feet > ring_z + params.feet_hidden_m else feet
