@@ -5,8 +5,9 @@ set -euo pipefail
 cd "$(dirname "$0")"
 
 # Open3D's wheel links against libusb and libgomp, which a minimal Debian lacks; chromium is the
-# browser the web view's tests drive through Playwright (`playwright install` needs the internet).
-SYSTEM_PACKAGES="libusb-1.0-0 libgomp1 chromium"
+# browser the web view's tests drive through Playwright (`playwright install` needs the internet);
+# telnet is the real program tests/clients/test_telnet_program.py types at the text server through.
+SYSTEM_PACKAGES="libusb-1.0-0 libgomp1 chromium telnet"
 missing=""
 for pkg in $SYSTEM_PACKAGES; do
     dpkg-query -W -f='${Status}' "$pkg" 2>/dev/null | grep -q "install ok installed" || missing="$missing $pkg"

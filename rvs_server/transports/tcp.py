@@ -32,13 +32,24 @@ REPLY_BUFFER_LIMIT = 4 << 20
 
 
 class TelnetFilter:
-    """Removes telnet IAC sequences from a byte stream, across chunk boundaries."""
+    """Removes telnet IAC sequences from a byte stream, across chunk boundaries.
+
+    Two things a real telnet sends are more than noise. A request for an option (`IAC DO x`, `IAC WILL
+    x`: `mode character`, or the full negotiation of `open HOST -PORT`) is refused (`IAC WONT x`,
+    `IAC DONT x`, RFC 854), collected in `answers` for the caller to send: telnet then stays in line
+    mode, echoing locally and ending lines with CR LF. And CR NUL, telnet's end of line in character
+    mode (RFC 854), ends a line as LF does."""
 
     def __init__(self) -> None:
         self._state = "data"
+        self._verb = 0  # WILL, WONT, DO or DONT, whose option byte comes next
+        self._cr = False  # the last data byte was a CR
+        self.answers = bytearray()  # refusals to send back
 
     def feed(self, data: bytes) -> bytes:
-        if IAC not in data and self._state == "data":
+        if IAC not in data and self._state == "data" and b"\r\0" not in data and not (self._cr and data[:1] == b"\0"):
+            if data:
+                self._cr = data[-1] == 13
             return data
         out = bytearray()
         for byte in data:
@@ -46,19 +57,24 @@ class TelnetFilter:
             if state == "data":
                 if byte == IAC:
                     self._state = "iac"
+                elif byte == 0 and self._cr:
+                    out.append(10)  # CR NUL is CR LF
                 else:
                     out.append(byte)
+                self._cr = byte == 13
             elif state == "iac":
                 if byte == IAC:  # an escaped 255 is data (and never valid UTF-8, so it will be refused)
                     out.append(IAC)
                     self._state = "data"
                 elif byte in (WILL, WONT, DO, DONT):
-                    self._state = "option"
+                    self._state, self._verb = "option", byte
                 elif byte == SB:
                     self._state = "sub"
                 else:
                     self._state = "data"
             elif state == "option":
+                if self._verb in (WILL, DO):  # refused; WONT and DONT are never answered, so no loop
+                    self.answers += bytes((IAC, DONT if self._verb == WILL else WONT, byte))
                 self._state = "data"
             elif state == "sub":
                 if byte == IAC:
@@ -125,6 +141,10 @@ class TextConnection(asyncio.Protocol):
 
     def data_received(self, data: bytes) -> None:
         self.buffer += self.telnet.feed(data)
+        if self.telnet.answers:
+            if self.transport is not None and not self.transport.is_closing():
+                self.transport.write(bytes(self.telnet.answers))
+            self.telnet.answers.clear()
         while True:
             end = self.buffer.find(b"\n")
             if end < 0:

@@ -140,6 +140,22 @@ def test_telnet_negotiation_is_removed_across_chunks():
     assert out == b"status\r\n"
 
 
+def test_telnet_option_requests_are_refused_and_cr_nul_ends_a_line():
+    """What `telnet` sends after `mode character` (DO SGA, DO ECHO, then Enter as CR NUL) and after
+    `open HOST -PORT` (its full negotiation): each DO is answered WONT, each WILL DONT, never a WONT or
+    DONT (RFC 854: no loops), and CR NUL ends the line, even split across chunks."""
+    filt = TelnetFilter()
+    assert filt.feed(b"\xff\xfd\x03\xff\xfd\x01status\r") == b"status\r"
+    assert filt.feed(b"\x00") == b"\n"
+    assert bytes(filt.answers) == b"\xff\xfc\x03\xff\xfc\x01"
+    filt.answers.clear()
+    stream = b"\xff\xfd&\xff\xfb&\xff\xfd\x03\xff\xfb\x18\xff\xfc\x01\xff\xfe\x05ver\r\x00sion\r\n"
+    out = b"".join(filt.feed(stream[i:i + 2]) for i in range(0, len(stream), 2))
+    assert out == b"ver\r\nsion\r\n"
+    assert bytes(filt.answers) == b"\xff\xfc&\xff\xfe&\xff\xfc\x03\xff\xfe\x18"
+    assert TelnetFilter().feed(b"a\x00b\n") == b"a\x00b\n"  # a NUL not after a CR is data
+
+
 def test_every_error_reason_has_its_code():
     assert RvsError("x", reason="device").code == 503
     assert RvsError("x", reason="sleeping").code == 423

@@ -38,6 +38,11 @@ def test_untagged_lines_are_numbered_and_ignored_lines_are_not_counted(shared_se
 def test_telnet_negotiation_bytes_are_ignored(shared_server):
     with shared_server.connect() as c:
         c.send_raw(b"\xff\xfd\x03\xff\xfb\x18sta\xff\xfa\x18\x00vt100\xff\xf0tus\r\n")
+        while b"\n" not in c.buffer:
+            c.buffer += c.sock.recv(65536)
+        # DO SGA and WILL TTYPE are refused (WONT SGA, DONT TTYPE) before the line's reply
+        refusals, c.buffer = c.buffer[:6], c.buffer[6:]
+        assert refusals == b"\xff\xfc\x03\xff\xfe\x18"
         assert c.read_line().startswith("1 OK mode=")
 
 
