@@ -5,8 +5,10 @@ the unit's own error texts, trapezoidal motion (`drivers.ptu_motion`) evaluated 
 await, slaved mode, halt, reset, unprompted limit notices. `serve_pty()` and `serve_tcp()` put it on
 a real line, so the driver is tested on the real bytes.
 
-Protocol facts come from the PTU-D46 user's manual (v2.14) and open-source drivers. Reply texts the
-manual does not show (marked "modelled" below) follow the manual's style.
+Protocol facts come from the PTU-D46 user's manual (v2.14) and open-source drivers. The verbose reply
+texts are checked one by one in docs/ptu-verbose-replies.md: the D46 v2.14 and D300 v2.18/v2.19
+manuals' examples first, then, where the manuals are silent, drivers written against real units
+(flirptu, Miro's DpPanTilt); texts no source shows are marked "modelled" below.
 """
 from __future__ import annotations
 
@@ -332,7 +334,7 @@ class PtuEmulator:
             return self._value(axis.soft[1], f"Maximum {name} position is {axis.soft[1]}")
         if code == "S":
             speed = axis.velocity if self.velocity_mode else s.speed
-            return self._value(speed, f"Target {name} speed is {speed} positions/sec")   # modelled
+            return self._value(speed, f"Target {name} speed is {speed} positions/sec")   # flirptu, Miro
         if code == "D":
             speed = round(axis.state(now)[1])
             return self._value(speed, f"Current {name} speed is {speed} positions/sec")
@@ -496,7 +498,7 @@ class PtuEmulator:
     def _limit_query(self, now: float) -> bytes:
         if self.limits_enforced:
             return self._value("ENABLED", "Limit bounds are ENABLED (soft limits enabled)")
-        return self._value("DISABLED", "Limit bounds are DISABLED (soft limits disabled)")  # modelled
+        return self._value("DISABLED", "Limit bounds are DISABLED (hard limits only: use care)")  # Miro
 
     def _limits_on(self, now: float) -> bytes:
         self.limits_enforced = True
@@ -506,10 +508,10 @@ class PtuEmulator:
         self.limits_enforced = False
         return self._ok()
 
-    def _mode_query(self, now: float) -> bytes:   # modelled
+    def _mode_query(self, now: float) -> bytes:   # flirptu (independent); velocity modelled on it
         if self.velocity_mode:
-            return self._value("VELOCITY", "Pure velocity speed control mode")
-        return self._value("INDEPENDENT", "Independent speed and position control mode")
+            return self._value("VELOCITY", "PTU is in Pure Velocity Mode")
+        return self._value("INDEPENDENT", "PTU is in Independent Mode")
 
     def _independent_mode(self, now: float) -> bytes:
         self.velocity_mode = False
@@ -530,8 +532,8 @@ class PtuEmulator:
         self.verbose = True
         return self._ok()
 
-    def _echo_query(self, now: float) -> bytes:   # modelled
-        return self._value("ON" if self.echo else "OFF", f"Echoing is {'ON' if self.echo else 'OFF'}")
+    def _echo_query(self, now: float) -> bytes:   # verbose: flirptu, Miro; terse modelled
+        return self._value("ON" if self.echo else "OFF", f"Echoing {'ON' if self.echo else 'OFF'}")
 
     def _echo_on(self, now: float) -> bytes:
         self.echo = True
