@@ -13,6 +13,9 @@
     rvs campaign FILE [--workers N | --scheduler ADDRESS] [--out DIR]
                                            run a campaign on Dask, each run on its own server
                                            (see clients/campaign.py); rerunning resumes it
+    rvs remap PRODUCT... --workflow FILE [--workers N | --scheduler ADDRESS] [--out DATA_DIR]
+                                           re-run a mapping workflow on the views dem-* products
+                                           stored, on Dask, with no device (see clients/remap.py)
 
 The text transport at 127.0.0.1:7400 is the default; `--zmq tcp://HOST:PORT` uses ZeroMQ instead
 (no events there). `--token-file` sends `auth TOKEN` before anything else.
@@ -30,7 +33,7 @@ from typing import Any, Callable
 
 from rvs_server.protocol import is_ignored
 
-from . import campaign, mission
+from . import campaign, mission, remap
 from .gnc import DEFAULT_HOST, DEFAULT_PORT, Event, RvsClient, RvsClientError, RvsRequestError, ZmqClient
 
 EXIT_OK, EXIT_FAILED, EXIT_NOT_STARTED = 0, 1, 2
@@ -281,6 +284,7 @@ def build_parser() -> argparse.ArgumentParser:
         sub.add_argument("file", metavar="FILE")
         sub.add_argument("--set", action="append", metavar="NAME=VALUE", help="value of ${NAME}; repeatable")
     campaign.add_parser(commands)
+    remap.add_parser(commands)
     return parser
 
 
@@ -297,7 +301,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     printer = Printer()
     handlers = {"send": command_send, "shell": command_shell, "mission": command_mission,
-                "campaign": lambda args, _printer: campaign.command_campaign(args)}
+                "campaign": lambda args, _printer: campaign.command_campaign(args),
+                "remap": lambda args, _printer: remap.command_remap(args)}
     try:
         return handlers[args.command](args, printer)
     except StartError as exc:

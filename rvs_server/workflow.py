@@ -265,9 +265,10 @@ def type_name(cls: type) -> str:
 
 
 def save_result(directory: Path, step: str, result: Any, types: Mapping[str, type] | None = None,
-                seconds: float | None = None) -> None:
+                seconds: float | None = None, compressed: bool = False) -> None:
     """`types`: the registered dataclasses (Operations.types); `seconds`: how long the step took,
-    kept so that a resumed job still knows it."""
+    kept so that a resumed job still knows it; `compressed`: for results kept long (a product's
+    views), not for checkpoints, which are written often and deleted."""
     arrays: dict[str, np.ndarray] = {}
     tree = _encode(result, arrays, types or {})
     if seconds is not None:
@@ -276,7 +277,7 @@ def save_result(directory: Path, step: str, result: Any, types: Mapping[str, typ
     # The JSON goes first and comes back last: a step counts as done only when both halves are whole
     # and of the same save.
     (directory / f"{step}.json").unlink(missing_ok=True)
-    save_npz_atomic(directory / f"{step}.npz", arrays)
+    save_npz_atomic(directory / f"{step}.npz", arrays, compressed)
     write_text_atomic(directory / f"{step}.json", json.dumps(tree))
 
 

@@ -20,6 +20,7 @@ from rvs_server.dispatch import Module
 from rvs_server.files import atomic_file
 from rvs_server.jobs import JobContext
 from rvs_server.mapping.steps import operations
+from rvs_server.mapping.stored_views import keep_views
 from rvs_server.products.canvas import side_by_side
 from rvs_server.products.ply import write_ply
 from rvs_server.products.rasters import write_geotiff, write_png
@@ -54,6 +55,8 @@ class MappingSettings(Settings):
                                     "within 0.1 m exceed the limit (fewer scale it down: noise)")
     roughness_limit: float = Field(0.04, gt=0)
     truth_step: float = Field(0.10, gt=0, description="step height of the truth obstacle grid in products")
+    keep_views: bool = Field(True, description="products keep their raw views and context (views/), so "
+                             "that `rvs remap` can run a changed workflow on them later")
 
 
 module = Module("mapping", settings=MappingSettings, summary="DEMs, ortho-images and hazard maps")
@@ -127,6 +130,9 @@ def run_mapping(ctx: JobContext, cfg: DemConfig, sensor: str) -> dict[str, Any]:
                               "steps": provenance, "args": args.model_dump(mode="json")})
     write_started = time.perf_counter()
     summary = write_maps(ctx, product, results)
+    if ctx.settings.keep_views:
+        keep_views(product, workflow, results, ctx.devices.rover.pose_estimate, ctx.server.calibration(),
+                   ctx.settings, args, command)
     product.timing("writing", time.perf_counter() - write_started)
     product.timing("total", time.perf_counter() - started)
     ctx.save_truth(product)

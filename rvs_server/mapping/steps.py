@@ -6,6 +6,7 @@ checkpointed. Acquisition checkpoints every view, so `break` loses at most the v
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable, Literal
@@ -77,7 +78,11 @@ def sensor_fov_deg(job: JobContext, sensor: str) -> tuple[float, float]:
     return (math.degrees(2 * math.atan((k.width / 2) / k.fx)), math.degrees(2 * math.atan((k.height / 2) / k.fy)))
 
 
-def stereo_intrinsics(job: JobContext) -> tuple[Intrinsics, Intrinsics]:
+def stereo_intrinsics(job: JobContext, acquired: dict | None = None) -> tuple[Intrinsics, Intrinsics]:
+    """The pair's intrinsics: those an acquisition kept, else the cameras' own."""
+    if acquired is not None and acquired.get("intrinsics"):
+        kept = acquired["intrinsics"]
+        return Intrinsics(**kept["left"]), Intrinsics(**kept["right"])
     pair = job.devices.cameras.require()
     mode = job.devices.cameras.config.resolution
     return pair.camera("left").intrinsics(mode), pair.camera("right").intrinsics(mode)
@@ -180,7 +185,11 @@ def acquire_stereo(step: StepContext, params: StepParams, views: dict) -> dict[s
                 "left_to_world": camera_to_world(pose, mounts["left"], pan, tilt),
                 "right_to_world": camera_to_world(pose, mounts["right"], pan, tilt)}
 
-    return {"sensor": "stereo", "views": each_view(step, views, take)}
+    left_k, right_k = stereo_intrinsics(job)
+    # The intrinsics go with the images, so that the stored views can be matched again without the
+    # cameras (`rvs remap`).
+    return {"sensor": "stereo", "views": each_view(step, views, take), "intrinsics": {
+        "left": dataclasses.asdict(left_k), "right": dataclasses.asdict(right_k)}}
 
 
 
@@ -194,7 +203,7 @@ class StereoParams(StepParams):
 @operations.register("stereo.points", StereoParams, inputs=("acquired",))
 def stereo_to_points(step: StepContext, params: StereoParams, acquired: dict) -> dict[str, Any]:
     """Rectify each pair, match with SGBM, and turn disparity into points in the left camera frame."""
-    left_k, right_k = stereo_intrinsics(step.job)
+    left_k, right_k = stereo_intrinsics(step.job, acquired)
     config = SgbmConfig(num_disparities=params.num_disparities, block_size=params.block_size)
     out = []
     for index, view in enumerate(acquired["views"]):
@@ -207,7 +216,7 @@ def stereo_to_points(step: StepContext, params: StereoParams, acquired: dict) ->
         out.append({"points_camera": points.astype(np.float32), "valid": valid,
                     "intensity": view["left"].astype(np.float32), "pan_tilt_deg": view["pan_tilt_deg"],
                     "camera_to_world": view["left_to_world"], "true_camera_to_world": np.full((4, 4), np.nan)})
-    return {"sensor": "stereo", "views": out}
+    return {"sensor": "stereo", "views": out, "intrinsics": acquired.get("intrinsics")}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -356,7 +365,7 @@ def ortho(step: StepContext, params: StepParams, dem: dict, acquired: dict, alig
         intrinsics = job.server.calibration().tof_intrinsics
         views = [(v["intensity"], correction @ v["camera_to_world"], _depth_of(v)) for v in acquired["views"]]
     else:
-        intrinsics = stereo_intrinsics(job)[0]
+        intrinsics = stereo_intrinsics(job, acquired)[0]
         views = [(v["intensity"], correction @ v["camera_to_world"], None) for v in acquired["views"]]
     draped = []
     for index, (image, pose, depth) in enumerate(views):
