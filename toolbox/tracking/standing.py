@@ -15,9 +15,10 @@
    window: centimetres that a person's height and z would carry), the grid's where too few.
 5. Seen from afar, that ring is grazing ground the sensor measures poorly (seeded scenes: 0.1-0.3 m
    off at 7-9 m), while the feet themselves face the sensor: the lowest raw points in a column round
-   the legs are the ground they stand on (within 0.03 m at any range there). The ring stands in
-   only near, where it is measured well, and where the feet are hidden (a rock before them: the
-   column then starts well above the ring).
+   the legs are the ground they stand on (within 0.03 m at any range there). Near, where the ring
+   is measured well, it is kept where the feet agree with it (the column's lowest points there are
+   the sensor's noise tail, 2-5 cm low) or are hidden (a rock before them: the column then starts
+   well above the ring).
 """
 from __future__ import annotations
 
@@ -51,6 +52,7 @@ class StandingParams:
     feet_radius: float = 0.35    # m: the column round the legs whose lowest points are the feet (step 5)
     feet_rank: int = 3           # the feet: this lowest point of the column (one stray return is not them)
     ring_trusted_m: float = 6.0  # m: within this range of the sensor the ring's ground is measured well
+    feet_agree_m: float = 0.05   # m: feet this near the trusted ring agree with it (the ring is kept)
     feet_hidden_m: float = 0.1   # m: a column whose lowest points stand this far above the ring is hidden
 
 
@@ -246,7 +248,7 @@ def feet_ground(points: np.ndarray, members: np.ndarray, ring_z: float, sensor_x
                 params: StandingParams = StandingParams()) -> float:
     """Step 5: the ground a cluster stands on from its feet (the `feet_rank` lowest raw point in a
     column round the middle of its lower part), or `ring_z` where the ring is trusted and the feet
-    are hidden."""
+    agree with it or are hidden."""
     lower = members[members[:, 2] <= members[:, 2].min() + 0.4 * (members[:, 2].max() - members[:, 2].min())]
     middle = np.median(lower[:, :2], axis=0)
     near = np.abs(points[:, 0] - middle[0]) <= params.feet_radius
@@ -257,4 +259,6 @@ def feet_ground(points: np.ndarray, members: np.ndarray, ring_z: float, sensor_x
         return ring_z
     feet = float(np.partition(column, params.feet_rank - 1)[params.feet_rank - 1])
     trusted = float(np.linalg.norm(middle - np.asarray(sensor_xy, dtype=float))) <= params.ring_trusted_m
-    return ring_z if trusted and feet > ring_z + params.feet_hidden_m else feet
+    if trusted and (abs(feet - ring_z) <= params.feet_agree_m or feet > ring_z + params.feet_hidden_m):
+        return ring_z
+    return feet
