@@ -64,6 +64,9 @@ class ServerConfig(Settings):
     log_files_kept: int = Field(5, ge=2, le=1000, description="log files kept in DATA_DIR/logs, all runs together")
     storage: StorageSettings = Field(default_factory=StorageSettings,
                                      description="[storage]: the retention rule and the storage cap")
+    native_worker: bool = Field(True, description="run the heavy native steps of jobs (COLMAP, ICP, gridding) in a "
+                                "supervised child process; false: in the job's thread, where a crash there ends the "
+                                "server (the behaviour before the worker, kept for comparison)")
     worker_memory_mb: int = Field(6144, ge=0, description="address space the native worker may take (MiB; it "
                                   "imports ~1.6 GB of libraries); past it the step ends, the worker is restarted; "
                                   "0: no limit")
@@ -205,7 +208,8 @@ class Server:
         self.devices = Devices(self.devices_config, self.clock, self.world_config, self.world_file)
         self.zmq: ZmqTransport | None = None
         self.web: WebView | None = None  # the web view, when web_port is not 0
-        self.native = NativeWorker(self.settings.worker_memory_mb or None)   # started with the devices
+        self.native = NativeWorker(self.settings.worker_memory_mb or None,   # started with the devices
+                                   in_process=not self.settings.native_worker)
         self.started = time.monotonic()
         self.log_handlers: list[logging.Handler] = []
         self.log_path = self._start_log()

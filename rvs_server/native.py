@@ -80,8 +80,9 @@ def signal_name(number: int) -> str:
 class NativeWorker:
     """The server's one native worker. `call` blocks the calling (job) thread; one call at a time."""
 
-    def __init__(self, memory_limit_mb: int | None):
+    def __init__(self, memory_limit_mb: int | None, in_process: bool = False):
         self.memory_limit_mb = memory_limit_mb
+        self.in_process = in_process       # server.toml native_worker = false: no child, calls run here
         self.faults = FaultSwitch()
         self.restarts = 0
         self.steps = 0
@@ -98,7 +99,7 @@ class NativeWorker:
 
     def start(self) -> None:
         """Start the child if it is not running (a spawn imports numpy, OpenCV and Open3D: ~1-2 s)."""
-        if self._process is not None and self._process.is_alive():
+        if self.in_process or (self._process is not None and self._process.is_alive()):
             return
         parent, child = self._context.Pipe()
         process = self._context.Process(target=_child_main, args=(child, self.memory_limit_mb),
@@ -123,6 +124,10 @@ class NativeWorker:
              check: Callable[[], None] | None = None) -> Any:
         """func(*args, **kwargs) in the child. Raises WorkerDied when it dies; what `check` raises
         (a break: JobInterrupted) after killing the child; func's own exception otherwise."""
+        if self.in_process:
+            with self._lock:
+                self.steps += 1
+                return func(*args, **(kwargs or {}))
         with self._lock:
             if self._process is None or not self._process.is_alive():
                 if self._process is not None:

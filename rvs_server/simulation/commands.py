@@ -92,6 +92,9 @@ def sim_fault(call: Call, cfg: SimFaultConfig) -> dict[str, Any]:
     """Break an emulated device (it stops answering after N more requests) or mend it (--clear)."""
     native = call.server.native
     if cfg.device == "worker":
+        if native.in_process and not cfg.clear:
+            raise WrongMode("sim-fault: the native worker is off (server.toml native_worker = false): a fault "
+                            "there would end the server itself")
         if cfg.clear:
             native.faults.clear()
             return {"cleared": "worker"}

@@ -93,3 +93,22 @@ def test_a_worker_killed_while_idle_or_past_its_memory_limit_is_started_again(se
             reply = c.command(line)
             assert "ERR 400 bad-request" in reply and wanted in reply, reply
         assert pairs(c.command("sim-fault --clear --device worker"))["cleared"] == "worker"
+
+
+def test_with_the_worker_off_steps_run_in_the_server_and_its_faults_are_refused(server_factory, tmp_path):
+    """server.toml native_worker = false: the behaviour before the worker (the benchmark's `before`),
+    the same map, no child, and no fault that would end the server itself."""
+    server = server_factory(data_dir=tmp_path / "in-process", configs={"server.toml": "native_worker = false\n"})
+    with server.connect(timeout=120) as c:
+        reply = c.command("sim-fault --device worker --kind segv")
+        assert reply.split()[1:3] == ["ERR", "409"] and "native worker is off" in reply, reply
+        mapped = c.command(MAP, timeout=300)
+        assert " OK " in mapped, mapped
+    children = subprocess.run(["pgrep", "-P", str(server.proc.pid)], capture_output=True, text=True).stdout.split()
+    assert not any(b"spawn_main" in Path(f"/proc/{child}/cmdline").read_bytes() for child in children
+                   if Path(f"/proc/{child}/cmdline").exists())
+
+    reference = server_factory(data_dir=tmp_path / "worker", configs={"server.toml": "native_worker = true\n"})
+    worker_pid(reference)
+    with reference.connect(timeout=120) as c:
+        assert_same_maps(product(server, mapped), product(reference, c.command(MAP, timeout=300)))
