@@ -17,13 +17,11 @@ The search. A* with the octile distance times the least cost per metre on the gr
 m = w + (1 - w) * min(c), as heuristic: every step costs at least m times its length and the octile
 distance is the exact length of the shortest 8-connected path on an empty grid, so the heuristic is
 admissible and consistent for every w, and it is 0 (plain Dijkstra, still exact) when m = 0.
-A* with a consistent heuristic h is Dijkstra on the reduced costs c(u, v) - h(u) + h(v) >= 0, and
-that is how we run it: in SciPy's compiled Dijkstra, about 5 times faster on a 1000 x 1000 grid
-than a compact Python heapq A* where the heuristic is loose, and faster still where it is tight.
-SciPy cannot stop at the goal, so the heuristic pays only through its `limit`:
-we first search the ellipse f = g + h <= (1 + slack) * h(start), which holds the goal whenever the
-heuristic is tight (short paths on open ground, w near 1), and fall back to a full Dijkstra
-otherwise. Both stages are exact; tests/bench/bench_astar.py measures what the first one buys.
+It runs compiled (numba, _astar_kernel.py): a closed set and an indexed heap over flat indices of
+the grid padded with one impassable ring, stopping when the goal leaves the heap. On a 1000 x 1000
+grid with random costs it is about 5 times faster than the SciPy Dijkstra on heuristic-reduced costs
+it replaced, and no slower than pyastar2d; tests/bench/bench_astar.py measures both in one run.
+The path's cost is then recomputed by `path_cost`, so it is the metric's definition to the last bit.
 """
 from __future__ import annotations
 
@@ -35,12 +33,10 @@ from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import dijkstra
 
 SQRT2 = float(np.sqrt(2.0))
-# The 8 neighbour steps (d_row, d_col); their order fixes the edge layout of the graph.
+# The 8 neighbour steps (d_row, d_col), in the order of _astar_kernel's STEP_ROWS and STEP_COLS.
 NEIGHBOUR_STEPS = ((-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1))
-# Width of the first, goal-limited A* stage, as a fraction of h(start); measured in bench_astar.py.
+# The default of astar's `slack`, which no longer does anything (it was the width of a goal-limited stage).
 ASTAR_SLACK = 0.02
-# A finite "no limit": SciPy's Dijkstra pushes nodes reached at cost +inf when its limit is +inf.
-NO_LIMIT = float(np.finfo(np.float64).max)
 
 
 @dataclass(frozen=True)
@@ -77,7 +73,7 @@ def path_cost(cells: np.ndarray, cost: np.ndarray, weight: float, cell: float) -
     steps = np.abs(np.diff(cells, axis=0))
     if steps.size and (steps.max() > 1 or (steps.sum(axis=1) == 0).any()):
         raise ValueError("path_cost needs a path of distinct, 8-connected cells")
-    per_metre = cost_per_metre(cost, weight)[cells[:, 0], cells[:, 1]]
+    per_metre = cost_per_metre(np.asarray(cost)[cells[:, 0], cells[:, 1]], weight)  # the path's cells only
     lengths = cell * np.where(steps.sum(axis=1) == 2, SQRT2, 1.0)
     return float(np.sum(lengths * (per_metre[:-1] + per_metre[1:]) / 2.0))
 
@@ -97,106 +93,23 @@ def check_search_inputs(cost: np.ndarray, weight: float, cell: float) -> np.ndar
     return cost
 
 
-def octile_heuristic(shape: tuple[int, int], goal: tuple[int, int], cell: float,
-                     min_cost_per_metre: float) -> np.ndarray:
-    """Lower bound of the cost from every cell to the goal: octile distance times the least cost per metre."""
-    d_row = np.abs(np.arange(shape[0]) - goal[0])[:, None]
-    d_col = np.abs(np.arange(shape[1]) - goal[1])[None, :]
-    octile = np.maximum(d_row, d_col) + (SQRT2 - 1.0) * np.minimum(d_row, d_col)
-    return min_cost_per_metre * cell * octile
-
-
-class GridGraph:
-    """The grid as a SciPy CSR graph: 8 edge slots per cell, +inf where a step is impossible.
-
-    The grid is padded with one ring of impassable cells so every cell has 8 in-range neighbours and
-    the graph needs neither bounds tests nor compaction: an edge of weight +inf is never relaxed.
-    """
-
-    def __init__(self, per_metre: np.ndarray, cell: float):
-        self.shape = per_metre.shape
-        self.cell = cell
-        self.width = per_metre.shape[1] + 2
-        self.per_metre = self._padded(per_metre, fill=np.inf)
-        self.nodes = self.per_metre.size
-        if 8 * self.nodes >= 2**31:  # SciPy's CSR graphs index edges with int32
-            raise ValueError(f"a grid of {per_metre.shape[0]} x {per_metre.shape[1]} cells is too large")
-        self.offsets = np.array([dr * self.width + dc for dr, dc in NEIGHBOUR_STEPS], dtype=np.int32)
-        neighbours = np.arange(self.nodes, dtype=np.int32)[:, None] + self.offsets[None, :]
-        self.indices = np.clip(neighbours, 0, self.nodes - 1, out=neighbours).ravel()
-        self.indptr = np.arange(0, 8 * self.nodes + 1, 8, dtype=np.int32)
-
-    def _padded(self, grid: np.ndarray, fill: float) -> np.ndarray:
-        padded = np.full((self.shape[0] + 2, self.width), fill)
-        padded[1:-1, 1:-1] = grid
-        return padded.ravel()
-
-    def csr(self, potential: np.ndarray | None = None) -> csr_matrix:
-        """The graph, with edge costs reduced by a potential (the A* heuristic) when one is given."""
-        weights = self._edge_weights(potential)
-        return csr_matrix((weights.ravel(), self.indices, self.indptr), shape=(self.nodes, self.nodes))
-
-    def _edge_weights(self, potential: np.ndarray | None) -> np.ndarray:
-        """(nodes, 8) step costs, node-major as CSR rows want them, each reduced by h(v) - h(u)."""
-        # Built slot by slot in contiguous rows, then transposed once: faster than strided columns.
-        weights = np.empty((8, self.nodes))
-        # Nodes of the first and last padded rows have neighbours outside the array: no edges.
-        inner = slice(self.width + 1, self.nodes - self.width - 1)
-        weights[:, :inner.start] = np.inf
-        weights[:, inner.stop:] = np.inf
-        per_metre = self.per_metre
-        heights = None if potential is None else self._padded(potential, fill=0.0)
-        for slot, ((d_row, d_col), offset) in enumerate(zip(NEIGHBOUR_STEPS, self.offsets)):
-            neighbour = slice(inner.start + offset, inner.stop + offset)
-            edge = weights[slot, inner]
-            np.add(per_metre[inner], per_metre[neighbour], out=edge)
-            edge *= 0.5 * self.cell * (SQRT2 if d_row and d_col else 1.0)
-            if heights is not None:
-                edge += heights[neighbour]
-                edge -= heights[inner]
-        # A consistent heuristic makes reduced costs >= 0; clip the rounding (~1e-16) below zero.
-        np.maximum(weights, 0.0, out=weights)
-        return np.ascontiguousarray(weights.T)
-
-    def node(self, cell: tuple[int, int]) -> int:
-        return (cell[0] + 1) * self.width + cell[1] + 1
-
-    def cell_of_node(self, nodes: np.ndarray) -> np.ndarray:
-        rows, cols = np.divmod(np.asarray(nodes, dtype=np.int64), self.width)
-        return np.stack([rows - 1, cols - 1], axis=1)
-
-    def shortest_path(self, graph: csr_matrix, start: tuple[int, int], goal: tuple[int, int],
-                      limit: float) -> np.ndarray | None:
-        """Cells of a shortest path, or None if the goal lies beyond `limit` (or is unreachable)."""
-        source, target = self.node(start), self.node(goal)
-        distance, predecessor = dijkstra(graph, directed=True, indices=source,
-                                         return_predecessors=True, limit=limit)
-        if not np.isfinite(distance[target]):
-            return None
-        nodes = [target]
-        while nodes[-1] != source:
-            nodes.append(int(predecessor[nodes[-1]]))
-        return self.cell_of_node(np.array(nodes[::-1]))
-
-
 def astar(cost: np.ndarray, start: tuple[int, int], goal: tuple[int, int], weight: float,
           cell: float = 1.0, slack: float = ASTAR_SLACK) -> SearchResult:
-    """Exact least-cost 8-connected path from `start` to `goal` (row, col) on the metric above."""
+    """Exact least-cost 8-connected path from `start` to `goal` (row, col) on the metric above.
+
+    `slack` is no longer used (the compiled A* stops at the goal and needs no search limit); it stays
+    so that callers which pass it keep working."""
     cost = check_search_inputs(cost, weight, cell)
     start, goal = _cell_tuple(start, cost.shape), _cell_tuple(goal, cost.shape)
-    per_metre = cost_per_metre(cost, weight)
-    if np.isinf(per_metre[start]) or np.isinf(per_metre[goal]):
+    if (cost.shape[0] + 2) * (cost.shape[1] + 2) >= 2**31:  # the kernel's heap holds int32 indices
+        raise ValueError(f"a grid of {cost.shape[0]} x {cost.shape[1]} cells is too large")
+    if np.isinf(cost[start]) or np.isinf(cost[goal]):
         return NO_PATH
     if start == goal:
         return SearchResult(np.array([start], dtype=np.int64), 0.0)
-    grid = GridGraph(per_metre, cell)
-    # A*: Dijkstra on heuristic-reduced costs, limited to the ellipse f <= (1 + slack) * h(start).
-    heuristic = octile_heuristic(cost.shape, goal, cell, _least_cost_per_metre(per_metre))
-    limit = min(slack * heuristic[start], NO_LIMIT) if slack < np.inf else NO_LIMIT
-    cells = grid.shortest_path(grid.csr(heuristic), start, goal, limit=limit)
-    # Not inside the ellipse: the heuristic is loose here, and a full Dijkstra is the faster exact search.
-    if cells is None:
-        cells = grid.shortest_path(grid.csr(), start, goal, limit=NO_LIMIT)
+    # numba is imported with the kernel, on the first search rather than with the planner.
+    from toolbox.planning import _astar_kernel
+    cells = _astar_kernel.astar_cells(cost, start, goal, weight, cell)
     if cells is None:
         return NO_PATH
     return SearchResult(cells, path_cost(cells, cost, weight, cell))
@@ -227,11 +140,6 @@ def dijkstra_reference(cost: np.ndarray, start: tuple[int, int], goal: tuple[int
     graph = csr_matrix((weights, (sources, targets)), shape=(rows * cols, rows * cols))
     distance = dijkstra(graph, directed=True, indices=start[0] * cols + start[1])
     return float(distance[goal[0] * cols + goal[1]])
-
-
-def _least_cost_per_metre(per_metre: np.ndarray) -> float:
-    finite = per_metre[np.isfinite(per_metre)]
-    return float(finite.min()) if finite.size else 0.0
 
 
 def _cell_tuple(cell: tuple[int, int], shape: tuple[int, int]) -> tuple[int, int]:
