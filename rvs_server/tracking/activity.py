@@ -39,6 +39,7 @@ PICTURE_POINTS = 200_000     # the ground the picture shows: a sample of every f
 GROUND_SMOOTHING = 0.3       # the target's ground height follows each measured one by this share
 NEAR_GROUND_M = 6.0          # within this the ground round a person's feet is seen well (its height learnt)
 HEIGHT_FRAMES = 50           # the person's height: the median of this many near frames
+FEET_HIDDEN_M = 0.1          # the feet's ground this far from the head's top less the height: hidden
 CONFIRM_M = 0.5              # acquiring: a person seen again this near (plus a walker's way) is confirmed
 STEER_SHARE = 0.5            # the PTU is asked to arrive within this share of a frame period: it stands
                              # again before the next frame is taken
@@ -61,7 +62,7 @@ class Target:
 class TrackActivity(Activity):
     kind = "track"
 
-    def __init__(self, server: "Host", settings: TrackingSettings, sensor: str, rate_hz: float, target: Target,
+    def __init__(self, server: Host, settings: TrackingSettings, sensor: str, rate_hz: float, target: Target,
                  product: Any):
         super().__init__(server, rate_hz)
         self.settings, self.sensor, self.product = settings, sensor, product
@@ -186,20 +187,21 @@ class TrackActivity(Activity):
         self._lost_s = seen.sim_s
 
     def _ground(self, chosen: Candidate, seen: Seen) -> None:
-        """The target's ground height. Far off, a range sensor sees little ground round the feet
-        (grazing returns fall below the confidence floor) and its estimate there drifts; the top of
-        the head is seen well at any range. So with the whole person in view the ground is its top
-        less its height (learnt where the ground is seen well: near), else the ground under it."""
+        """The target's ground height: the ground its feet stand on (toolbox/tracking/standing.py
+        step 5). Where that disagrees with the top of the head less the person's height (learnt near,
+        where the ground is seen well) by more than FEET_HIDDEN_M, the feet are hidden (a rock before
+        them: the lowest points seen are a leg's) and the top less the height stands in."""
         shape = chosen.shape
         top = np.array([shape.x, shape.y, shape.ground_z + shape.height])
         whole = self.sight.sees_top_of(seen, top)
         near = chosen.range_from(seen.sensor_xy) <= NEAR_GROUND_M
         if whole and near:
             self._heights.append(shape.height)
+        measured = shape.ground_z
         if whole and self._heights:
-            measured = top[2] - float(np.median(self._heights[-HEIGHT_FRAMES:]))
-        else:
-            measured = shape.ground_z
+            from_top = top[2] - float(np.median(self._heights[-HEIGHT_FRAMES:]))
+            if abs(measured - from_top) > FEET_HIDDEN_M:
+                measured = from_top
         self.ground_z += GROUND_SMOOTHING * (measured - self.ground_z)
 
     def _measurement_cov(self, seen: Seen, candidate: Candidate) -> np.ndarray:
