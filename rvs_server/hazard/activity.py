@@ -17,7 +17,6 @@ import time
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any
 
-import numpy as np
 
 from rvs_server.activities import Activity
 from rvs_server.devices.frame_points import SENSOR_DEVICE, FramePoints, FrameSettings
@@ -27,7 +26,7 @@ from toolbox.mapping.corridor import CorridorParams, CorridorView, HazardMemory,
 from toolbox.mapping.hazard import HazardConfig
 
 from .guard import HazardGuard, causes
-from .record import FrameRecord, write_product
+from .record import FrameLog, FrameRecord, write_product
 
 if TYPE_CHECKING:
     from rvs_server.host import Host
@@ -47,7 +46,7 @@ class Seen:
 class HazardActivity(Activity):
     kind = "hazard"
 
-    def __init__(self, server: "Host", settings: "HazardSettings", sensor: str, rate_hz: float,
+    def __init__(self, server: Host, settings: HazardSettings, sensor: str, rate_hz: float,
                  stop_distance: float, product: Any):
         super().__init__(server, rate_hz)
         self.settings, self.sensor, self.stop_distance, self.product = settings, sensor, stop_distance, product
@@ -66,7 +65,7 @@ class HazardActivity(Activity):
         self._memory_lock = threading.Lock()
         self.newest: Seen | None = None
         self.last_unknown = ""
-        self.records: list[FrameRecord] = []
+        self.log = FrameLog(product)           # frames.csv and stops.csv, written as they come
         self.views: list[CorridorView] = []    # the last frames', for the picture
         self.guard = HazardGuard(self)
         self.frames_of = FramePoints(server, FrameSettings(
@@ -80,7 +79,7 @@ class HazardActivity(Activity):
 
     def blind_reason(self, since_s: float, pose: RoverPose) -> str:
         """Why no frame counts as fresh for a drive begun at since_s, standing at pose."""
-        newest, last = self.newest, self.records[-1] if self.records else None
+        newest, last = self.newest, self.log.last
         if last is not None and last.state == "unknown":
             return f"frame {last.seq} was unknown: {last.reason}"
         if newest is None:
@@ -121,7 +120,7 @@ class HazardActivity(Activity):
         self.views = (self.views + [view])[-self.settings.picture_frames:]
         record = FrameRecord(seq, sim_s, "hazard" if hit else "clear", hit, latency_ms, view.seen, len(points),
                              pose, pan, tilt, direction, truth=truth)
-        self.records.append(record)
+        self.log.frame(record)
         return record.event()
 
     def unknown(self, seq: int, reason: str) -> dict[str, Any]:
@@ -129,7 +128,7 @@ class HazardActivity(Activity):
         record = FrameRecord(seq, self.server.clock.now(), "unknown", None, 0.0, 0.0, 0,
                              self.server.devices.rover.pose_estimate, math.nan, math.nan, self.guard.direction,
                              reason=reason)
-        self.records.append(record)
+        self.log.frame(record)
         return record.event()
 
     def _point(self, devices: Any) -> tuple[float, float]:
@@ -147,15 +146,13 @@ class HazardActivity(Activity):
         rover = self.server.devices.rover
         if rover.guard is self.guard:
             rover.guard = None
-        hazards = sum(1 for r in self.records if r.state == "hazard")
-        measured = [r.latency_ms for r in self.records if r.state != "unknown"]
-        write_product(self.product, self.records, self.guard.stops, self.views, self.memory, self.params,
-                      self.settings, self.sensor)
+        write_product(self.product, self.log, self.views, self.memory, self.params, self.settings, self.sensor)
+        p95 = self.log.latency_percentile(95)
         self.server.publish_threadsafe("product", {"name": self.product.name, "command": "hazard-start",
                                                    "path": str(self.product.path)})
         return {"activity": "hazard", "frames": self.frames, "rate": f"{self.measured_rate():.2f}",
-                "hazards": hazards, "stops": len(self.guard.stops),
-                "latency_ms": f"{np.percentile(measured, 95):.1f}" if measured else "none",
+                "hazards": self.log.states["hazard"], "stops": len(self.log.stops),
+                "latency_ms": f"{p95:.1f}" if p95 is not None else "none",
                 "product": self.product.name, "path": str(self.product.path)}
 
 __all__ = ["HazardActivity", "causes"]

@@ -37,12 +37,11 @@ def causes(code: int) -> str:
 class HazardGuard(DriveGuard):
     name = "hazard"
 
-    def __init__(self, activity: "HazardActivity"):
+    def __init__(self, activity: HazardActivity):
         self.activity = activity
         self.direction = 1          # of the drive in progress: the activity reports along it
-        self.stops: list[dict] = []
 
-    def check(self, job: "JobContext", pose: RoverPose, direction: int, remaining_m: float, speed_m_s: float,
+    def check(self, job: JobContext, pose: RoverPose, direction: int, remaining_m: float, speed_m_s: float,
               started_s: float) -> str | None:
         self.direction = direction
         activity = self.activity
@@ -69,6 +68,7 @@ class HazardGuard(DriveGuard):
                 f"distance {activity.stop_distance:.2f} m)")
 
     def stopped(self, sentence: str, estimate: RoverPose, truth: dict | None) -> None:
-        self.stops.append({"seq": self.activity.frames, "sim_s": self.activity.server.clock.now(), "reason": sentence,
+        activity = self.activity
+        activity.log.stop({"seq": activity.frames, "sim_s": activity.server.clock.now(), "reason": sentence,
                            "x": estimate.x, "y": estimate.y, "heading_deg": math.degrees(estimate.heading),
                            "truth": truth})

@@ -1,18 +1,18 @@
-"""What hazard detection keeps: one record per frame (its event and its CSV row), and the product
-`hazard-stop` closes: frames.csv, stops.csv and corridor.png (the memory around the rover, the last
-frames' corridors and detections, the stops)."""
+"""What hazard detection keeps: one record per frame (its event and its CSV row), written to
+frames.csv as the activity goes (FrameLog), and the product `hazard-stop` closes: corridor.png (the
+memory around the rover, the last frames' corridors and detections, the stops) and the manifest."""
 from __future__ import annotations
 
 import csv
-import io
 import math
+import threading
+from collections import deque
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, TextIO
 
 import cv2
 import numpy as np
 
-from rvs_server.files import write_text_atomic
 from rvs_server.products.canvas import Canvas
 from rvs_server.products.rasters import write_png
 from toolbox.colour import categorical, with_key, with_title
@@ -58,7 +58,8 @@ class FrameRecord:
                 codes_words(hit.cause) if hit else "", f"{self.latency_ms:.2f}", f"{self.seen:.3f}", self.points,
                 f"{self.pose.x:.3f}", f"{self.pose.y:.3f}", f"{math.degrees(self.pose.heading):.2f}",
                 _number(self.pan_deg, 2), _number(self.tilt_deg, 2), self.direction,
-                _number(truth[0]), _number(truth[1]), _number(math.degrees(truth[2]) if truth[2] == truth[2] else None, 2),
+                _number(truth[0]), _number(truth[1]),
+                _number(math.degrees(truth[2]) if truth[2] == truth[2] else None, 2),
                 self.reason]
 
 
@@ -75,12 +76,76 @@ def codes_words(code: int) -> str:
     return "+".join(words)
 
 
-def _csv(header: list[str], rows: list[list[Any]]) -> str:
-    text = io.StringIO()
-    writer = csv.writer(text, lineterminator="\n")
-    writer.writerow(header)
-    writer.writerows(rows)
-    return text.getvalue()
+PATH_KEPT = 20_000        # poses kept for the picture's path (about an hour at 5 Hz)
+LATENCY_BIN_MS = 0.05     # the latency histogram's bin (percentiles to this), up to LATENCY_TOP_MS
+LATENCY_TOP_MS = 5000.0
+
+
+class FrameLog:
+    """frames.csv and stops.csv written as the activity goes, a row per frame or stop, flushed at once:
+    a kill loses at most the frame in progress. In memory only what the summary and the picture need
+    (counts per state, a latency histogram, the last PATH_KEPT poses, the stops), not every frame: an
+    activity may run for a season."""
+
+    def __init__(self, product: Any):
+        self._lock = threading.Lock()
+        self._frames = self._open(product.add("frames.csv", "one row per frame, written as it was taken: state, "
+                                              "nearest hazard in the path (distance from the leading edge, world "
+                                              "x y, cause), latency, the estimate and (simulated) the true pose"),
+                                  FRAME_COLUMNS)
+        self._stops = self._open(product.add("stops.csv", "every drive the guard stopped, written as it stopped: "
+                                             "where, why and (simulated) the true pose and free way left to the "
+                                             "nearest true obstacle"), STOP_COLUMNS)
+        self.states = {"clear": 0, "hazard": 0, "unknown": 0}
+        self.latency = np.zeros(int(LATENCY_TOP_MS / LATENCY_BIN_MS) + 1, dtype=np.int64)
+        self.path: deque[tuple[float, float]] = deque(maxlen=PATH_KEPT)
+        self.last: FrameRecord | None = None
+        self.stops: list[dict] = []
+
+    @staticmethod
+    def _open(path: Any, header: list[str]) -> tuple[TextIO, Any]:
+        handle = open(path, "w", newline="", encoding="utf-8")   # noqa: SIM115 (open for the activity's life)
+        writer = csv.writer(handle, lineterminator="\n")
+        writer.writerow(header)
+        handle.flush()
+        return handle, writer
+
+    def frame(self, record: FrameRecord) -> None:
+        with self._lock:
+            handle, writer = self._frames
+            if not handle.closed:
+                writer.writerow(record.row())
+                handle.flush()
+            self.states[record.state] += 1
+            if record.state != "unknown":
+                self.latency[min(int(record.latency_ms / LATENCY_BIN_MS), len(self.latency) - 1)] += 1
+            self.path.append((record.pose.x, record.pose.y))
+            self.last = record
+
+    def stop(self, stop: dict) -> None:
+        with self._lock:
+            handle, writer = self._stops
+            if not handle.closed:
+                writer.writerow(stop_row(stop))
+                handle.flush()
+            self.stops.append(stop)
+
+    @property
+    def frames(self) -> int:
+        return sum(self.states.values())
+
+    def latency_percentile(self, q: float) -> float | None:
+        """The q-th percentile of the measured frames' latency (ms, to the bin's upper edge); None: none."""
+        total = int(self.latency.sum())
+        if total == 0:
+            return None
+        index = int(np.searchsorted(np.cumsum(self.latency), q / 100.0 * total))
+        return (min(index, len(self.latency) - 1) + 1) * LATENCY_BIN_MS
+
+    def close(self) -> None:
+        with self._lock:
+            for handle, _ in (self._frames, self._stops):
+                handle.close()
 
 
 def stop_row(stop: dict) -> list[Any]:
@@ -92,24 +157,17 @@ def stop_row(stop: dict) -> list[Any]:
             _number(truth.get("clearance_m")), truth.get("contacts", ""), stop["reason"]]
 
 
-def write_product(product: Any, records: list[FrameRecord], stops: list[dict], views: list[CorridorView],
-                  memory: HazardMemory, params: CorridorParams, settings: Any, sensor: str) -> None:
-    write_text_atomic(product.add("frames.csv", "one row per frame: state, nearest hazard in the path (distance "
-                                  "from the leading edge, world x y, cause), latency, the estimate and (simulated) "
-                                  "the true pose"), _csv(FRAME_COLUMNS, [r.row() for r in records]))
-    write_text_atomic(product.add("stops.csv", "every drive the guard stopped: where, why and (simulated) the "
-                                  "true pose and free way left to the nearest true obstacle"),
-                      _csv(STOP_COLUMNS, [stop_row(s) for s in stops]))
-    picture = corridor_picture(records, stops, views, memory, params, sensor)
+def write_product(product: Any, log: FrameLog, views: list[CorridorView], memory: HazardMemory,
+                  params: CorridorParams, settings: Any, sensor: str) -> None:
+    log.close()
+    picture = corridor_picture(log, views, memory, params, sensor)
     if picture is not None:
         write_png(product.add("corridor.png", "the hazard memory around the rover (north up): the last frames' "
                               "corridors, detections and stops"), picture)
-    measured = [r.latency_ms for r in records if r.state != "unknown"]
+    p50, p95 = log.latency_percentile(50), log.latency_percentile(95)
     product.note("summary", {
-        "sensor": sensor, "frames": len(records), "stops": len(stops),
-        "states": {s: sum(1 for r in records if r.state == s) for s in ("clear", "hazard", "unknown")},
-        "latency_ms": {"p50": float(np.percentile(measured, 50)), "p95": float(np.percentile(measured, 95))}
-        if measured else None,
+        "sensor": sensor, "frames": log.frames, "stops": len(log.stops), "states": dict(log.states),
+        "latency_ms": {"p50": p50, "p95": p95} if p50 is not None else None,
         "corridor": {"reach_m": params.reach, "half_width_m": params.half_width, "cell_m": params.cell},
         "settings": settings.model_dump(mode="json")})
     product.finish()
@@ -119,8 +177,8 @@ PALETTE = {codes.SAFE: (70, 110, 70), codes.UNKNOWN: (25, 25, 25)}
 HAZARD_RGB = (220, 50, 40)
 
 
-def corridor_picture(records: list[FrameRecord], stops: list[dict], views: list[CorridorView],
-                     memory: HazardMemory, params: CorridorParams, sensor: str) -> np.ndarray | None:
+def corridor_picture(log: FrameLog, views: list[CorridorView], memory: HazardMemory, params: CorridorParams,
+                     sensor: str) -> np.ndarray | None:
     """North-up picture of the memory: safe green, hazard red, unknown dark; the last frames'
     corridors outlined, their nearest hazards ringed, the rover's estimated path, the stops."""
     spec = memory.spec
@@ -136,8 +194,7 @@ def corridor_picture(records: list[FrameRecord], stops: list[dict], views: list[
         rgb = rgb[r0:r1, c0:c1]
         spec = type(spec)(spec.origin_x + c0 * spec.cell, spec.origin_y + r0 * spec.cell, spec.cell, r1 - r0, c1 - c0)
     canvas = Canvas(rgb, spec, 720)
-    path = [(r.pose.x, r.pose.y) for r in records]
-    canvas.line(path, (240, 240, 240), 1)
+    canvas.line(list(log.path), (240, 240, 240), 1)
     for view in views:
         x0, y0, heading = view.pose
         outline = footprint_polygon(RoverPose(x0 + math.cos(heading) * params.reach / 2,
@@ -146,16 +203,16 @@ def corridor_picture(records: list[FrameRecord], stops: list[dict], views: list[
         cv2.polylines(canvas.image, [canvas.pixels(outline)], True, (90, 160, 230), 1, cv2.LINE_AA)
         if view.nearest is not None:
             cv2.circle(canvas.image, canvas.pixel((view.nearest.x, view.nearest.y)), 6, (255, 220, 0), 2, cv2.LINE_AA)
-    if records:
-        last = records[-1].pose
+    if log.last is not None:
+        last = log.last.pose
         body = footprint_polygon(last, params.body_length, params.body_width)
         cv2.polylines(canvas.image, [canvas.pixels(body)], True, (255, 255, 255), 2, cv2.LINE_AA)
-    for stop in stops:
+    for stop in log.stops:
         cv2.drawMarker(canvas.image, canvas.pixel((stop["x"], stop["y"])), (255, 0, 255), cv2.MARKER_TILTED_CROSS,
                        14, 2)
     picture = with_key(canvas.image, [("safe", PALETTE[codes.SAFE]), ("hazard", HAZARD_RGB),
                                       ("unknown", PALETTE[codes.UNKNOWN]), ("corridor", (90, 160, 230)),
                                       ("nearest hazard", (255, 220, 0)), ("stop", (255, 0, 255))])
-    states = {s: sum(1 for r in records if r.state == s) for s in ("clear", "hazard", "unknown")}
-    return with_title(picture, f"hazard ({sensor}): {len(records)} frames, {states['hazard']} with a hazard in the "
-                               f"path, {states['unknown']} unknown, {len(stops)} stops; last {len(views)} corridors")
+    states = log.states
+    return with_title(picture, f"hazard ({sensor}): {log.frames} frames, {states['hazard']} with a hazard in the "
+                               f"path, {states['unknown']} unknown, {len(log.stops)} stops; last {len(views)} corridors")

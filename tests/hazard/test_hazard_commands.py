@@ -214,3 +214,51 @@ def test_navigate_maps_again_and_plans_round_a_rock_dropped_while_it_drives(serv
     truth = json.loads((product_dir(server, reply) / "truth" / "traverse.json").read_text())
     assert traverse["hazard_stops"] >= 1 and truth["contacts"] == 0, (traverse["hazard_stops"], truth["contacts"])
     assert int(pairs(stop)["stops"]) >= 1
+
+
+def test_the_frame_log_is_on_disk_as_it_goes_and_survives_a_kill(server_factory):
+    """frames.csv gets a flushed row per frame: after kill -9, every frame the events announced is there."""
+    server = server_factory()
+    with server.connect() as c:
+        c.command("subscribe hazard")
+        started = c.command("hazard-start --rate 5 --output kept")
+        assert " OK " in started, started
+        deadline = time.monotonic() + 60
+        while len(hazard_events(c)) < 6 and time.monotonic() < deadline:
+            c.command("status")
+        announced = max(int(m.group(1)) for m in hazard_events(c))
+    server.proc.kill()
+    server.proc.wait(30)
+    rows = list(csv.DictReader(open(server.data_dir / "products" / "kept" / "frames.csv")))
+    assert len(rows) >= announced >= 6 and [int(r["seq"]) for r in rows] == list(range(1, len(rows) + 1))
+    assert (server.data_dir / "products" / "kept" / "stops.csv").read_text().startswith("seq,sim_s,")
+
+
+def test_a_sensor_fault_mid_run_makes_frames_unknown_stops_drives_and_a_reset_mends_it(server_factory):
+    """The activity outlives a broken sensor: its frames say unknown and why, the guard will not drive
+    on unseen ground, and after the fault is cleared and the devices reset, frames are measured again."""
+    server = server_factory()
+    with server.connect(timeout=300) as c:
+        c.command("subscribe hazard")
+        assert " OK " in c.command("hazard-start --rate 5")
+        assert " OK " in c.command("sim-fault --device tof")
+        deadline = time.monotonic() + 60
+        while not any(m.group(2) == "unknown" for m in hazard_events(c)) and time.monotonic() < deadline:
+            c.command("status")
+        unknown = next(e for e in c.events if "state=unknown" in e)
+        assert "reason=" in unknown and "sr4000" in unknown.lower(), unknown
+        assert pairs(c.command("status"))["hazard"] == "on"
+        refused = c.command("drive --forward 0.5", timeout=300)
+        assert "drive stopped: hazard: no hazard frame" in refused and "unknown" in refused, refused
+        assert " OK " in c.command("sim-fault --device tof --clear")
+        assert " OK " in c.command("reset", timeout=120)
+        seen = len(c.events)
+        deadline = time.monotonic() + 60
+        while not any("state=clear" in e or "state=hazard" in e for e in c.events[seen:]) \
+                and time.monotonic() < deadline:
+            c.command("status")
+        assert any("state=clear" in e or "state=hazard" in e for e in c.events[seen:])
+        summary = pairs(c.command("hazard-stop", timeout=60))
+    assert summary["activity"] == "hazard" and int(summary["frames"]) > 2
+    rows = list(csv.DictReader(open(server.data_dir / "products" / summary["product"] / "frames.csv")))
+    assert {"unknown", "clear"} <= {r["state"] for r in rows} or {"unknown", "hazard"} <= {r["state"] for r in rows}
