@@ -28,9 +28,10 @@ from __future__ import annotations
 import csv
 import math
 import shutil
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Literal, NamedTuple, Sequence
+from typing import TYPE_CHECKING, Any, Literal, NamedTuple
 
 import numpy as np
 from pydantic import Field
@@ -40,11 +41,29 @@ from rvs_server.config import CommandConfig, Point, SafeName
 from rvs_server.devices.rover import DriveStopped, Moved, Pace, WorldEdge, dead_reckon, turn_and_distance
 from rvs_server.files import atomic_file, save_npy_atomic
 from rvs_server.jobs import JobContext
-from rvs_server.mapping import (MappingSettings, WorkflowArgs, check_workflow, leave_camera_as_acquired, operations,
-                                write_maps)
-from rvs_server.navigation.commands import (NavigationSettings, check_reach, handout_border, hole_mask, look_distance,
-                                            module, operating_box, planning_layers, planning_params, under_rover,
-                                            unlooked_ground, within_area, write_plan)
+from rvs_server.mapping import (
+    MappingSettings,
+    WorkflowArgs,
+    check_workflow,
+    leave_camera_as_acquired,
+    operations,
+    write_maps,
+)
+from rvs_server.navigation.commands import (
+    NavigationSettings,
+    check_reach,
+    handout_border,
+    hole_mask,
+    look_distance,
+    module,
+    operating_box,
+    planning_layers,
+    planning_params,
+    under_rover,
+    unlooked_ground,
+    within_area,
+    write_plan,
+)
 from rvs_server.navigation.pictures import write_traverse
 from rvs_server.orientation import OrientFailed, OrientSettings, odometer_of, orient_here
 from rvs_server.products.manifests import ProductPart
@@ -53,10 +72,27 @@ from rvs_server.protocol import BadRequest
 from rvs_server.workflow import WorkflowError, resolve_params, run_workflow
 from toolbox.geometry import RoverPose
 from toolbox.grid import GridSpec
+from toolbox.mapping import hazard as hazard_codes
 from toolbox.mapping.localisation import merge_clouds
-from toolbox.planning import (DrivablePrefix, MapLayers, PlanningParams, PlanResult, blank_map_spanning,
-                              drivable_prefix, fuse_nearest, holes_on_path, keep_route, nearest_open_cell, outside_box,
-                              plan_path, plan_through_unconfirmed, short_of_first_touch, with_hazards, with_unknown)
+from toolbox.planning import (
+    DrivablePrefix,
+    MapLayers,
+    PlanningParams,
+    PlanResult,
+    blank_map_spanning,
+    drivable_prefix,
+    fuse_nearest,
+    hazards_onto,
+    holes_on_path,
+    keep_route,
+    nearest_open_cell,
+    outside_box,
+    plan_path,
+    plan_through_unconfirmed,
+    short_of_first_touch,
+    with_hazards,
+    with_unknown,
+)
 from toolbox.planning.drive_error import cut_for_drive_error
 from toolbox.planning.paths import path_length
 
@@ -428,6 +464,11 @@ class Navigation:
         cost = np.where(under, np.where(np.isfinite(fused.cost), fused.cost, 0.0), fused.cost)
         fused = MapLayers(fused.spec, np.where(under & fused.hazard, 0.0, cost), fused.hazard & ~under,
                           fused.unknown & ~under)
+        # What the hazard guard saw while driving (a rock dropped, a person) stays a hazard for the plan,
+        # also where this cycle's partial scan did not look.
+        guarded = self.guard_hazards(fused.spec) & ~under
+        fused = with_hazards(fused, guarded)
+        self.state.cycles[-1]["guard_hazard_cells"] = int(guarded.sum())
         far = np.zeros(fused.spec.shape, bool)
         if self.settings.far_hazards.of(self.cfg.sensor) == "unconfirmed":
             far = nearest.hazard & fused.hazard & (nearest.seen_from > self.settings.confirm_range_m)
@@ -440,6 +481,17 @@ class Navigation:
         holes = hole_mask(in_area, start, self.cfg.sensor, self.settings)
         unlooked = unlooked_ground(fused, looks, rover, self.cfg.sensor, self.settings)
         return FusedMaps(fused, holes | far, unlooked, maps[-1])
+
+    def guard_hazards(self, spec: GridSpec) -> np.ndarray:
+        """The hazards in the running hazard activity's memory (hazard-start) on `spec`; none without one."""
+        activity = self.server.activities.running("hazard")
+        memory = getattr(activity, "memory", None)
+        if memory is None:
+            return np.zeros(spec.shape, dtype=bool)
+        source, code = memory.snapshot()
+        if source is None:
+            return np.zeros(spec.shape, dtype=bool)
+        return hazards_onto(spec, source, hazard_codes.is_hazard(code))
 
     def _map_cloud_path(self, cycle: int):
         if cycle < 1:
@@ -594,7 +646,7 @@ class Navigation:
                          "w", newline="") as handle:
             writer = csv.writer(handle)
             writer.writerow(["index", "x", "y", "heading_deg", "odometry_x", "odometry_y", "odometry_heading_deg"])
-            for i, (est, odo) in enumerate(zip(state.estimated_path, state.odometry_path)):
+            for i, (est, odo) in enumerate(zip(state.estimated_path, state.odometry_path, strict=True)):
                 writer.writerow([i, f"{est[0]:.4f}", f"{est[1]:.4f}", f"{math.degrees(est[2]):.3f}",
                                  f"{odo[0]:.4f}", f"{odo[1]:.4f}", f"{math.degrees(odo[2]):.3f}"])
 
@@ -651,7 +703,7 @@ def clip_length(points: np.ndarray, max_length: float) -> np.ndarray:
     points = np.asarray(points, dtype=np.float64).reshape(-1, 2)
     out = [points[0]] if len(points) else []
     left = max_length
-    for a, b in zip(points[:-1], points[1:]):
+    for a, b in zip(points[:-1], points[1:], strict=True):
         step = float(np.linalg.norm(b - a))
         if step >= left:
             out.append(a + (b - a) * (left / step) if step > 0 else b)

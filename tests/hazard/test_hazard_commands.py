@@ -187,7 +187,7 @@ def test_a_drive_stops_short_of_a_dropped_rock_and_of_a_person(server_factory, w
         assert stop["contacts_so_far"] == "0" and 0.2 < float(stop["true_clearance_m"]) < 0.75, stop
 
 
-def test_navigate_maps_again_and_plans_round_a_rock_dropped_while_it_drives(server_factory, wide_world):
+def test_navigate_plans_round_a_rock_the_guard_saw_while_it_drives(server_factory, wide_world):
     heading = clear_lane(wide_world, (0.0, 0.0), 4.5, 0.55)
     c_, s_ = math.cos(math.radians(heading)), math.sin(math.radians(heading))
     # Slower simulated time: the rock lands while the first leg has barely begun.
@@ -214,6 +214,9 @@ def test_navigate_maps_again_and_plans_round_a_rock_dropped_while_it_drives(serv
     truth = json.loads((product_dir(server, reply) / "truth" / "traverse.json").read_text())
     assert traverse["hazard_stops"] >= 1 and truth["contacts"] == 0, (traverse["hazard_stops"], truth["contacts"])
     assert int(pairs(stop)["stops"]) >= 1
+    # The plans after the stop had the guard's own detections in their map, not only the next scan's.
+    stopped_at = next(i for i, c in enumerate(traverse["cycles"]) if c.get("hazard_stop"))
+    assert any(c.get("guard_hazard_cells", 0) > 0 for c in traverse["cycles"][stopped_at + 1:]), traverse["cycles"]
 
 
 def test_the_frame_log_is_on_disk_as_it_goes_and_survives_a_kill(server_factory):

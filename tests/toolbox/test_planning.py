@@ -11,11 +11,32 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from toolbox.grid import GridSpec
-from toolbox.planning import (MapLayers, PlanningParams, apply_unknown_policy, astar, blank_map_spanning,
-                              cells_to_world, dijkstra_reference, distance_to_border, douglas_peucker, drivable_prefix,
-                              fuse_maps, inflate_hazards, keep_route, path_cost, path_length, plan_path, polyline_cost,
-                              proximity_cost, resample_onto, segment_cells, segment_is_clear, simplify_path,
-                              terrain_cost, world_to_cells)
+from toolbox.planning import (
+    MapLayers,
+    PlanningParams,
+    apply_unknown_policy,
+    astar,
+    blank_map_spanning,
+    cells_to_world,
+    dijkstra_reference,
+    distance_to_border,
+    douglas_peucker,
+    drivable_prefix,
+    fuse_maps,
+    inflate_hazards,
+    keep_route,
+    path_cost,
+    path_length,
+    plan_path,
+    polyline_cost,
+    proximity_cost,
+    resample_onto,
+    segment_cells,
+    segment_is_clear,
+    simplify_path,
+    terrain_cost,
+    world_to_cells,
+)
 from toolbox.planning.search import ASTAR_SLACK
 
 SQRT2 = math.sqrt(2.0)
@@ -313,7 +334,7 @@ def test_simplification_keeps_the_deviation_bound_and_clears_hazards(seed, toler
     kept = result.cells[keep]
     assert keep[0] == 0 and keep[-1] == len(result.cells) - 1 and (np.diff(keep) > 0).all()
     assert distance_to_polyline(result.cells.astype(float), kept.astype(float)).max() <= tolerance + 1e-9
-    assert all(segment_is_clear(blocked, a, b) for a, b in zip(kept[:-1], kept[1:]))
+    assert all(segment_is_clear(blocked, a, b) for a, b in zip(kept[:-1], kept[1:], strict=True))
 
 
 def test_a_segment_crossing_a_hazard_is_split():
@@ -323,7 +344,7 @@ def test_a_segment_crossing_a_hazard_is_split():
     assert douglas_peucker(cells, 3.0).tolist() == [0, 6]
     keep = simplify_path(cells, blocked, 3.0)
     assert keep.tolist() == [0, 2, 6]  # split at the first of the farthest points
-    assert all(segment_is_clear(blocked, cells[a], cells[b]) for a, b in zip(keep[:-1], keep[1:]))
+    assert all(segment_is_clear(blocked, cells[a], cells[b]) for a, b in zip(keep[:-1], keep[1:], strict=True))
 
 
 # --- world coordinates, lengths, the drivable prefix -----------------------------------------------
@@ -365,7 +386,7 @@ def test_drivable_prefix_keeps_the_margin_all_along():
     waypoints = cells_to_world(spec, np.array([[30, 30], [35, 40], [50, 45], [59, 10]]))
     prefix = drivable_prefix(waypoints, spec, border, margin_m=0.4)
     assert not prefix.complete
-    legs = zip(prefix.waypoints[:-1], prefix.waypoints[1:])
+    legs = zip(prefix.waypoints[:-1], prefix.waypoints[1:], strict=True)
     along = np.concatenate([np.linspace(a, b, 200) for a, b in legs])
     cells, _ = world_to_cells(spec, along[:-1])  # the cut point itself is on the edge of the first bad cell
     assert (border[cells[:, 0], cells[:, 1]] >= 0.4).all()
@@ -385,7 +406,7 @@ def test_plan_path_round_a_rock():
     assert result.waypoints[0] == pytest.approx([0.55, 0.55])
     assert result.waypoints[-1] == pytest.approx([4.55, 4.55])
     blocked = np.isinf(result.cost_grid)
-    legs = zip(result.waypoint_cells[:-1], result.waypoint_cells[1:])
+    legs = zip(result.waypoint_cells[:-1], result.waypoint_cells[1:], strict=True)
     assert all(segment_is_clear(blocked, a, b) for a, b in legs)
     assert result.length_m >= path_length(result.waypoints) - 1e-9
     reference = dijkstra_reference(result.cost_grid, result.cells[0], result.cells[-1], 0.7, 0.1)
@@ -712,3 +733,15 @@ def test_the_hazard_margin_is_per_sensor_and_one_value_serves_both():
     assert both.hazard_margin_m.of("tof") == both.hazard_margin_m.of("stereo") == 0.2
     with pytest.raises(ValueError, match="hazard_margin_m.stereo"):
         NavigationSettings(hazard_margin_m={"tof": 0.1, "stereo": -0.1})
+
+
+def test_hazards_of_a_fine_grid_onto_a_coarse_one_keep_every_rock():
+    from toolbox.planning import hazards_onto
+    fine = GridSpec(0.0, 0.0, 0.05, 40, 40)              # 2 x 2 m at 5 cm
+    hazard = np.zeros(fine.shape, dtype=bool)
+    hazard[10, 10] = True                                # one 5 cm cell: its centre (0.525, 0.525)
+    hazard[39, 0] = True                                 # the corner: centre (0.025, 1.975)
+    coarse = GridSpec(-1.0, -1.0, 0.2, 15, 15)           # -1..2 m at 20 cm
+    onto = hazards_onto(coarse, fine, hazard)
+    assert onto.sum() == 2 and onto[7, 7] and onto[14, 5]
+    assert not hazards_onto(GridSpec(10.0, 10.0, 0.2, 5, 5), fine, hazard).any()   # beyond: nothing

@@ -187,6 +187,11 @@ class HazardMemory:
         """The remembered codes on `spec` (uint8; UNKNOWN where never seen). Do not write to it."""
         return self._grid[1]
 
+    def snapshot(self) -> tuple[GridSpec | None, np.ndarray]:
+        """The placement and the codes read together (one grid, never one's placement and the other's
+        codes). Do not write to the codes."""
+        return self._grid
+
     def clear(self) -> None:
         self._grid = (None, self._blank())
 

@@ -21,14 +21,46 @@ import numpy as np
 from scipy.ndimage import label
 
 from toolbox.grid import GridSpec
-from toolbox.planning.costs import (UNKNOWN_POLICIES, InflatedHazards, UnknownPolicy, apply_unknown_policy,
-                                    inflate_hazards, proximity_cost, terrain_cost)
-from toolbox.planning.fusion import (FusedLayers, MapLayers, blank_map, blank_map_spanning, enclosed_unknown, fuse_maps,
-                                     fuse_nearest, holes_on_path, inside_box, outside_box, resample_onto, with_hazards,
-                                     with_unknown)
-from toolbox.planning.paths import (DrivablePrefix, cells_to_world, distance_to_border, douglas_peucker,
-                                    drivable_prefix, first_touch, path_length, segment_cells, segment_is_clear,
-                                    short_of_first_touch, simplify_path, world_to_cells, world_to_grid)
+from toolbox.planning.costs import (
+    UNKNOWN_POLICIES,
+    InflatedHazards,
+    UnknownPolicy,
+    apply_unknown_policy,
+    inflate_hazards,
+    proximity_cost,
+    terrain_cost,
+)
+from toolbox.planning.fusion import (
+    FusedLayers,
+    MapLayers,
+    blank_map,
+    blank_map_spanning,
+    enclosed_unknown,
+    fuse_maps,
+    fuse_nearest,
+    hazards_onto,
+    holes_on_path,
+    inside_box,
+    outside_box,
+    resample_onto,
+    with_hazards,
+    with_unknown,
+)
+from toolbox.planning.paths import (
+    DrivablePrefix,
+    cells_to_world,
+    distance_to_border,
+    douglas_peucker,
+    drivable_prefix,
+    first_touch,
+    path_length,
+    segment_cells,
+    segment_is_clear,
+    short_of_first_touch,
+    simplify_path,
+    world_to_cells,
+    world_to_grid,
+)
 from toolbox.planning.search import SearchResult, astar, cost_per_metre, dijkstra_reference, path_cost
 
 __all__ = [
@@ -127,7 +159,7 @@ def polyline_cost(points_xy: np.ndarray, cost_grid: np.ndarray, spec: GridSpec, 
     per_metre = cost_per_metre(cost_grid, weight)
     rc = world_to_grid(spec, points)
     total = 0.0
-    for a, b, length in zip(rc[:-1], rc[1:], np.linalg.norm(np.diff(points, axis=0), axis=1)):
+    for a, b, length in zip(rc[:-1], rc[1:], np.linalg.norm(np.diff(points, axis=0), axis=1), strict=True):
         cells, t = segment_cells(a, b)
         if not ((cells >= 0) & (cells < cost_grid.shape)).all():
             return float("inf")
@@ -166,7 +198,7 @@ def keep_route(plan: PlanResult, previous_xy: np.ndarray | None, start_xy: tuple
     if not np.isfinite(old) or old > (1.0 + hysteresis) * new:
         return plan
     rc = np.rint(world_to_grid(spec, route)).astype(np.int64)
-    cells = np.vstack([segment_cells(p, q)[0] for p, q in zip(rc[:-1], rc[1:])] + [rc[-1:]])
+    cells = np.vstack([segment_cells(p, q)[0] for p, q in zip(rc[:-1], rc[1:], strict=True)] + [rc[-1:]])
     cells = cells[np.r_[True, np.abs(np.diff(cells, axis=0)).sum(axis=1) > 0]]
     return PlanResult(found=True, reason="", message="", cells=cells, waypoint_cells=rc, waypoints=route,
                       cost=old, length_m=path_length(route), cost_grid=plan.cost_grid, hazards=plan.hazards,
@@ -217,7 +249,8 @@ def open_escape(cost: np.ndarray, planning_map: MapLayers, hazards: InflatedHaza
         return cost
     xs, ys = spec.centres()
     near = np.hypot(xs[None, :] - start_xy[0], ys[:, None] - start_xy[1]) <= params.clearance_m + spec.cell
-    way_out = near & hazards.mask & ~planning_map.hazard & (hazards.distance_m >= hazards.distance_m[start[0], start[1]])
+    way_out = (near & hazards.mask & ~planning_map.hazard
+               & (hazards.distance_m >= hazards.distance_m[start[0], start[1]]))
     if params.unknown_policy == "forbid":
         way_out &= ~planning_map.unknown
     opened = planning_cost(planning_map, hazards, params, masked=False)
@@ -241,7 +274,7 @@ def refuse_endpoints(planning_map: MapLayers, hazards: InflatedHazards, cost: np
     """(reason, sentence) if the start or the goal is off the map or on a blocked cell, else None."""
     spec = planning_map.spec
     cells, inside = world_to_cells(spec, np.array([start_xy, goal_xy], dtype=np.float64))
-    for name, point, cell, on_map in zip(("start", "goal"), (start_xy, goal_xy), cells, inside):
+    for name, point, cell, on_map in zip(("start", "goal"), (start_xy, goal_xy), cells, inside, strict=True):
         where = f"{name} ({point[0]:g}, {point[1]:g})"
         if not on_map:
             (x0, x1), (y0, y1) = spec.x_range, spec.y_range

@@ -14,8 +14,8 @@ the start, the goal and the local maps, with a margin, as in the thesis's `navig
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Sequence
 
 import numpy as np
 from scipy.ndimage import binary_fill_holes, label
@@ -119,7 +119,7 @@ def fuse_nearest(global_map: MapLayers, local_maps: Sequence[MapLayers],
     cost, hazard, unknown = global_map.cost.copy(), global_map.hazard.copy(), global_map.unknown.copy()
     best = np.full(spec.shape, np.inf)
     close_hazard = np.zeros(spec.shape, bool)
-    for local, (ox, oy) in zip(local_maps, observers_xy):
+    for local, (ox, oy) in zip(local_maps, observers_xy, strict=True):
         part = resample_onto(local, spec)
         distance = np.hypot(xs[None, :] - ox, ys[:, None] - oy)
         take = ~part.unknown & (distance < best)
@@ -175,6 +175,18 @@ def outside_box(spec: GridSpec, box: tuple[float, float, float, float]) -> np.nd
     """Cells whose centre lies outside the box (x_min, x_max, y_min, y_max), world metres."""
     xs, ys = spec.centres()
     return ~inside_box(xs[None, :], ys[:, None], box)
+
+
+def hazards_onto(spec: GridSpec, source: GridSpec, hazard: np.ndarray) -> np.ndarray:
+    """Another grid's hazard cells on `spec`: a cell of `spec` that holds a hazard cell's centre is a
+    hazard (any of them: a rock one fine cell wide stays a rock on a coarser grid)."""
+    rows, cols = np.nonzero(hazard)
+    mask = np.zeros(spec.shape, dtype=bool)
+    if len(rows):
+        row, col, inside = spec.cell_of(source.origin_x + (cols + 0.5) * source.cell,
+                                        source.origin_y + (rows + 0.5) * source.cell)
+        mask[row[inside], col[inside]] = True
+    return mask
 
 
 def with_hazards(layers: MapLayers, mask: np.ndarray) -> MapLayers:
