@@ -16,8 +16,18 @@ from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import dijkstra
 
 from toolbox.planning import _astar_kernel
-from toolbox.planning.search import (NEIGHBOUR_STEPS, NO_PATH, SQRT2, SearchResult, _cell_tuple, astar,
-                                     check_search_inputs, cost_per_metre, dijkstra_reference, path_cost)
+from toolbox.planning.search import (
+    NEIGHBOUR_STEPS,
+    NO_PATH,
+    SQRT2,
+    SearchResult,
+    _cell_tuple,
+    astar,
+    check_search_inputs,
+    cost_per_metre,
+    dijkstra_reference,
+    path_cost,
+)
 
 # --- the previous implementation, verbatim but for names --------------------------------------------
 
@@ -74,7 +84,7 @@ class GridGraph:
         weights[:, inner.stop:] = np.inf
         per_metre = self.per_metre
         heights = None if potential is None else self._padded(potential, fill=0.0)
-        for slot, ((d_row, d_col), offset) in enumerate(zip(NEIGHBOUR_STEPS, self.offsets)):
+        for slot, ((d_row, d_col), offset) in enumerate(zip(NEIGHBOUR_STEPS, self.offsets, strict=True)):
             neighbour = slice(inner.start + offset, inner.stop + offset)
             edge = weights[slot, inner]
             np.add(per_metre[inner], per_metre[neighbour], out=edge)
@@ -226,25 +236,10 @@ def test_kernel_and_reference_costs_on_a_small_grid():
         assert result.cost == pytest.approx(scipy_astar(cost, (0, 0), (24, 24), weight, 0.2).cost, abs=1e-9)
 
 
-@pytest.mark.parametrize("weight", [0.0, 0.4, 1.0])
-def test_padded_per_metre_grid_is_cost_per_metre(weight):
-    rng = np.random.default_rng(11)
-    cost = random_cost_grid(rng, 9, 13, obstacle_density=0.2, cost_scale=3.0)
-    per_metre, least = _astar_kernel.padded_cost_per_metre(cost, weight)
-    padded = per_metre.reshape(11, 15)
-    expected = cost_per_metre(cost, weight)
-    assert np.array_equal(padded[1:-1, 1:-1], expected)
-    assert np.isinf(padded[[0, -1], :]).all() and np.isinf(padded[:, [0, -1]]).all()
-    assert least == expected[np.isfinite(expected)].min()
-    _, least = _astar_kernel.padded_cost_per_metre(np.full((3, 3), np.inf), weight)
-    assert least == 0.0
-
-
 def test_kernel_returns_no_nodes_when_the_goal_is_walled_off():
     cost = np.zeros((5, 5))
     cost[:, 2] = np.inf
-    per_metre, least = _astar_kernel.padded_cost_per_metre(cost, 0.5)
-    nodes = _astar_kernel.astar_nodes(per_metre, 7, 1 * 7 + 1, 5 * 7 + 5, 1.0, least)
+    nodes = _astar_kernel.astar_nodes(cost.ravel(), 5, 5, 0.5, 0, 24, 1.0, 0.5)
     assert nodes.shape == (0,)
     assert _astar_kernel.astar_cells(cost, (0, 0), (4, 4), 0.5, 1.0) is None
     cells = _astar_kernel.astar_cells(cost, (0, 0), (4, 1), 0.5, 1.0)
@@ -252,8 +247,23 @@ def test_kernel_returns_no_nodes_when_the_goal_is_walled_off():
     assert path_cost(cells, cost, 0.5, 1.0) == pytest.approx(0.5 * (3 + SQRT2), abs=1e-12)
 
 
+@pytest.mark.parametrize("shape", [(1, 1), (1, 9), (9, 1), (2, 2), (3, 7)])
+def test_paths_along_the_grid_border(shape):
+    """No padding ring: nodes on the border must neither step off the grid nor wrap to the other side."""
+    rows, cols = shape
+    cost = np.linspace(0.0, 1.0, rows * cols).reshape(shape)[:, ::-1].copy()
+    for start in [(0, 0), (rows - 1, cols - 1), (0, cols - 1), (rows - 1, 0)]:
+        for goal in [(0, 0), (rows - 1, cols - 1), (0, cols - 1), (rows - 1, 0)]:
+            for weight in (0.0, 0.5, 1.0):
+                result = assert_same_search(cost, start, goal, weight, 1.0)
+                assert result.cost == pytest.approx(dijkstra_reference(cost, start, goal, weight, 1.0), abs=1e-12)
+    # Flat index (0, 11) + 1 is (1, 0): a wrapped step would make this path one cell long.
+    result = astar(np.zeros((4, 12)), (0, 11), (1, 0), 1.0)
+    assert result.cost == pytest.approx(10 + SQRT2) and len(result.cells) == 12
+
+
 def test_kernel_steps_are_the_neighbour_steps():
-    assert list(zip(_astar_kernel.STEP_ROWS, _astar_kernel.STEP_COLS)) == list(NEIGHBOUR_STEPS)
+    assert list(zip(_astar_kernel.STEP_ROWS, _astar_kernel.STEP_COLS, strict=True)) == list(NEIGHBOUR_STEPS)
 
 
 def test_slack_no_longer_changes_the_result():
