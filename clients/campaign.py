@@ -63,9 +63,10 @@ import subprocess
 import sys
 import time
 import tomllib
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 from rvs_server.protocol import split_tag
 
@@ -136,7 +137,7 @@ def load_campaign(path: str | Path) -> Campaign:
         if not all(isinstance(values, list) and values for values in product.values()):
             raise CampaignError(f"{path.name}: every key of [product] must be a non-empty list")
         names = list(product)
-        runs += [dict(zip(names, combination)) for combination in itertools.product(*product.values())]
+        runs += [dict(zip(names, combination, strict=True)) for combination in itertools.product(*product.values())]
     if not runs:
         raise CampaignError(f"{path.name}: no runs ([[run]] tables or a [product] of lists)")
     keys = [RunLog.key(run) for run in runs]
@@ -526,7 +527,8 @@ def run_campaign(campaign: Campaign, out: Path, workers: int | None = None, sche
         futures = {}
         for run in todo:
             name = run_name(run)
-            spec = {"run": run, "name": name, "run_dir": str(out / "runs" / name), "mission_text": campaign.mission_text,
+            spec = {"run": run, "name": name, "run_dir": str(out / "runs" / name),
+                    "mission_text": campaign.mission_text,
                     "mission_name": campaign.mission_name, "world": campaign.world, "collect": campaign.collect,
                     "sim_speed": campaign.sim_speed, "timeout_s": campaign.timeout_s}
             future = client.submit(execute_run, spec, key=f"rvs-run-{name}-{time.time_ns()}", pure=False,

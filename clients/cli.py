@@ -28,8 +28,9 @@ import os
 import stat
 import sys
 import threading
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 from rvs_server.protocol import is_ignored
 

@@ -35,8 +35,18 @@ from collections.abc import AsyncIterator, Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Any, Union
 
-from rvs_server.protocol import (Reply, build_line, format_err, format_event, format_ok, format_progress, format_value,
-                                 is_ignored, parse_reply, split_tag)
+from rvs_server.protocol import (
+    Reply,
+    build_line,
+    format_err,
+    format_event,
+    format_ok,
+    format_progress,
+    format_value,
+    is_ignored,
+    parse_reply,
+    split_tag,
+)
 
 log = logging.getLogger("rvs.client")
 
@@ -113,7 +123,7 @@ class Event:
     line: str = ""
 
 
-Item = Union[Progress, Result]
+Item = Progress | Result
 EventTarget = Union[Callable[[Event], Any], "queue.Queue[Event]", "asyncio.Queue[Event]", None]
 
 
@@ -316,7 +326,7 @@ class _BlockingClient:
     def send(self, line: str, timeout: float | None = None) -> Result:
         """Send one command line and wait for its final reply; an ERR raises."""
         result: Item | None = None
-        for result in self.stream(line, timeout):
+        for result in self.stream(line, timeout):  # noqa: B007  the loop keeps the last item: the final reply
             pass
         assert isinstance(result, Result)
         return result
@@ -682,12 +692,12 @@ class AsyncRvsClient:
         self.server_version = ""
         self.server_mode = ""
 
-    async def connect(self) -> "AsyncRvsClient":
+    async def connect(self) -> AsyncRvsClient:
         try:
             self._reader, self._writer = await asyncio.wait_for(
                 asyncio.open_connection(self.host, self.port, limit=1 << 20), self.timeout)
             line = await asyncio.wait_for(self._reader.readline(), self.timeout)
-        except (OSError, asyncio.TimeoutError) as exc:
+        except (TimeoutError, OSError) as exc:
             await self.close()
             raise RvsConnectionError(f"cannot connect to {self.host}:{self.port}: {exc!r}") from None
         text = line.decode("utf-8", "replace").rstrip("\r\n")
@@ -723,7 +733,7 @@ class AsyncRvsClient:
             except asyncio.CancelledError:
                 pass
 
-    async def __aenter__(self) -> "AsyncRvsClient":
+    async def __aenter__(self) -> AsyncRvsClient:
         return await self.connect()
 
     async def __aexit__(self, *exc: Any) -> None:
@@ -731,7 +741,7 @@ class AsyncRvsClient:
 
     async def send(self, line: str, timeout: float | None = None) -> Result:
         result: Item | None = None
-        async for result in self.stream(line, timeout):
+        async for result in self.stream(line, timeout):  # noqa: B007  the loop keeps the last item: the final reply
             pass
         assert isinstance(result, Result)
         return result
@@ -757,7 +767,7 @@ class AsyncRvsClient:
             while True:
                 try:
                     item = await asyncio.wait_for(waiter.get(), wait)
-                except asyncio.TimeoutError:
+                except TimeoutError:
                     raise RvsNoReply(f"no reply to request {tag} within {wait:g} s") from None
                 if item is _CLOSED:
                     raise RvsConnectionError(

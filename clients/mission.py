@@ -19,8 +19,9 @@ runner takes any client with `stream(line)` (gnc.RvsClient or gnc.ZmqClient).
 from __future__ import annotations
 
 import re
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
-from typing import Callable, Iterable, Mapping, Protocol
+from typing import Protocol
 
 from rvs_server.protocol import is_ignored, split_tag
 
@@ -200,7 +201,8 @@ def _walk(client: Client, lines: list[MissionLine], out: Callable[[str], None], 
             out(f"line {line.number}: {failed} ({error.code} {error.reason}), excused by '-'{going_on}")
             report.excused.append(line.number)
         else:
-            out(f"line {line.number}: {failed} ({error.code} {error.reason})" + ("" if checking else "; mission stopped"))
+            out(f"line {line.number}: {failed} ({error.code} {error.reason})"
+                + ("" if checking else "; mission stopped"))
             report.failures.append(line.number)
             if not checking:
                 report.stopped_at = line.number

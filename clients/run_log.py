@@ -15,9 +15,10 @@ from __future__ import annotations
 
 import json
 import os
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Iterable
+from typing import Any
 
 
 def read_runs(path: Path) -> list[dict[str, Any]]:
@@ -127,6 +128,7 @@ def report(path: Path, summarise: Callable[[list[dict[str, Any]], str], str]) ->
         finished = [{**r, **r["run"]} for r in runs if "error" not in r]
         lines = [f"== {describe(settings)}: {len(finished)} runs, {sum(r['seconds'] for r in runs):.0f} s"]
         lines += [summarise(finished, sensor) for sensor in sorted({r["sensor"] for r in finished})]
-        lines += [f"  {r['run']['sensor']} seed {r['run']['seed']} broke: {r['error'][:200]}" for r in runs if "error" in r]
+        lines += [f"  {r['run']['sensor']} seed {r['run']['seed']} broke: {r['error'][:200]}"
+                  for r in runs if "error" in r]
         blocks.append("\n".join(lines))
     return "\n\n".join(blocks)

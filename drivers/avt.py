@@ -103,7 +103,7 @@ class CameraSettings(BaseModel):
         except ValidationError as exc:
             raise SettingsError(_describe_validation(exc)) from None
 
-    def with_changes(self, **changes) -> "CameraSettings":
+    def with_changes(self, **changes) -> CameraSettings:
         return CameraSettings(**{**self.model_dump(), **changes})
 
     def save(self, path: str | Path) -> Path:
@@ -113,7 +113,7 @@ class CameraSettings(BaseModel):
         return path
 
     @classmethod
-    def load(cls, path: str | Path) -> "CameraSettings":
+    def load(cls, path: str | Path) -> CameraSettings:
         """Read settings from a JSON file; keys the file lacks take their defaults."""
         path = Path(path)
         try:
@@ -323,7 +323,7 @@ class Camera(ABC):
                                 s.pixel_format, s.exposure_us, s.gain_db, self._frames, self._last_frame_s,
                                 self._last_error)
 
-    def __enter__(self) -> "Camera":
+    def __enter__(self) -> Camera:
         self.open()
         return self
 

@@ -74,7 +74,7 @@ class EmulatedCamera(Camera):
         self._lock = threading.Lock()           # arm/trigger hand-over
         self._exposure: _Exposure | None = None
         self._armed = False
-        world.surface.scene   # build the ray-casting scene now, not in two render threads at once
+        _ = world.surface.scene   # build the ray-casting scene now, not in two render threads at once
         trigger.connect(self._on_trigger)
 
     def intrinsics(self, mode: str | None = None) -> Intrinsics:
@@ -156,7 +156,7 @@ class EmulatedCamera(Camera):
         threading.Thread(target=self._develop, args=(exposure, scene, settings, frame_number),
                          name=f"render {self.camera_id}", daemon=True).start()
 
-    def _develop(self, exposure: _Exposure, scene: "_SceneAtPulse", settings: CameraSettings,
+    def _develop(self, exposure: _Exposure, scene: _SceneAtPulse, settings: CameraSettings,
                  frame_number: int) -> None:
         try:
             rng = np.random.default_rng([self._seed, zlib.crc32(self.camera_id.encode()), frame_number])
@@ -208,5 +208,6 @@ def emulated_stereo_pair(world: World, left_pose: Pose, right_pose: Pose, *, clo
     intrinsics = intrinsics_per_mode(sensor)
     cameras = [EmulatedCamera(camera_id, world, pose, intrinsics, clock, trigger, seed,
                               default_settings=default_settings, fault=faults.get(mount))
-               for camera_id, pose, mount in zip(ids, (left_pose, right_pose), ("camera-left", "camera-right"))]
+               for camera_id, pose, mount in zip(ids, (left_pose, right_pose), ("camera-left", "camera-right"),
+                                                 strict=True)]
     return StereoCameras(cameras, trigger, default_settings)

@@ -107,7 +107,7 @@ class StereoCameras:
             finally:
                 self.trigger.close()
 
-    def __enter__(self) -> "StereoCameras":
+    def __enter__(self) -> StereoCameras:
         self.open()
         return self
 

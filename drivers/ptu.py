@@ -234,7 +234,7 @@ class PtuD46:
         with self._lock:
             self._close_port()
 
-    def __enter__(self) -> "PtuD46":
+    def __enter__(self) -> PtuD46:
         self.open()
         return self
 
@@ -284,10 +284,10 @@ class PtuD46:
 
         Targets outside the limits and speeds outside the speed bounds are refused before anything
         is sent; the speed, when given, is set on both axes before the move."""
-        targets = {axis: self._checked_target(axis, deg) for axis, deg in zip(AXES, (pan_deg, tilt_deg))}
+        targets = {axis: self._checked_target(axis, deg) for axis, deg in zip(AXES, (pan_deg, tilt_deg), strict=True)}
         commands = []
         if speed_deg_s is not None:
-            for axis, letter in zip(AXES, "PT"):
+            for axis, letter in zip(AXES, "PT", strict=True):
                 commands.append(f"{letter}S{self._checked_speed(axis, speed_deg_s)}")
         commands += [f"PP{targets['pan']}", f"TP{targets['tilt']}"]
         self._exchange(commands)
@@ -358,7 +358,7 @@ class PtuD46:
     def _read_limits(self) -> None:
         replies = self._exchange(["PR", "TR", "PN", "PX", "TN", "TX", "PU", "PL", "TU", "TL"])
         sent = ["PR", "TR", "PN", "PX", "TN", "TX", "PU", "PL", "TU", "TL"]
-        numbers = [self._number(reply, command) for reply, command in zip(replies, sent)]
+        numbers = [self._number(reply, command) for reply, command in zip(replies, sent, strict=True)]
         pan_res, tilt_res = numbers[0] / ARCSEC_PER_DEGREE, numbers[1] / ARCSEC_PER_DEGREE
         pan_min, pan_max, tilt_min, tilt_max, pan_up, pan_low, tilt_up, tilt_low = map(round, numbers[2:])
         self._position_limits = {"pan": (pan_min, pan_max), "tilt": (tilt_min, tilt_max)}
@@ -380,7 +380,7 @@ class PtuD46:
 
     def _query_ints(self, commands: list[str]) -> list[int]:
         return [round(self._number(reply, command))
-                for reply, command in zip(self._exchange(commands), commands)]
+                for reply, command in zip(self._exchange(commands), commands, strict=True)]
 
     # -- the line -----------------------------------------------------------------------------
 

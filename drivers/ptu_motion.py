@@ -40,7 +40,7 @@ class Trajectory:
         self.final = final
 
     @classmethod
-    def at_rest(cls, position: float) -> "Trajectory":
+    def at_rest(cls, position: float) -> Trajectory:
         return cls([], position)
 
     @property

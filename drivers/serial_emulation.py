@@ -61,7 +61,7 @@ class EmulationServer:
         self._unsent = bytearray()
         self._thread = threading.Thread(target=self._serve, name=thread_name, daemon=True)
 
-    def start(self) -> "EmulationServer":
+    def start(self) -> EmulationServer:
         self._thread.start()
         return self
 
@@ -76,7 +76,7 @@ class EmulationServer:
         os.close(self._wake_read)
         os.close(self._wake_write)
 
-    def __enter__(self) -> "EmulationServer":
+    def __enter__(self) -> EmulationServer:
         return self
 
     def __exit__(self, *exc_info) -> None:

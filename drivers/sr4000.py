@@ -119,7 +119,7 @@ class ModulationFrequency(enum.IntEnum):
         return f"{self.megahertz:g}MHz"
 
     @classmethod
-    def parse(cls, text: str | int) -> "ModulationFrequency":
+    def parse(cls, text: str | int) -> ModulationFrequency:
         """From a label ("30MHz", "14.5 MHz"), an enum name ("MF_30MHz") or the enum number."""
         if isinstance(text, ModulationFrequency):
             return text
@@ -236,7 +236,7 @@ class Sr4000Settings(BaseModel):
     timeout_ms: int = Field(1000, ge=1, le=600_000)
 
     @model_validator(mode="after")
-    def _consistent(self) -> "Sr4000Settings":
+    def _consistent(self) -> Sr4000Settings:
         if self.auto_exposure_min > self.auto_exposure_max:
             raise Sr4000SettingsError("auto_exposure_min", self.auto_exposure_min,
                                       f"<= auto_exposure_max ({self.auto_exposure_max})")
@@ -247,7 +247,7 @@ class Sr4000Settings(BaseModel):
 
     # -- construction with precise errors ------------------------------------------------------
     @classmethod
-    def checked(cls, where: str | None = None, **values: Any) -> "Sr4000Settings":
+    def checked(cls, where: str | None = None, **values: Any) -> Sr4000Settings:
         """Validate `values` (missing keys take defaults); refuse the first bad one by key."""
         unknown = sorted(set(values) - set(cls.model_fields))
         if unknown:
@@ -264,7 +264,7 @@ class Sr4000Settings(BaseModel):
         except ValidationError as exc:
             raise _settings_error(exc, where) from None
 
-    def updated(self, **changes: Any) -> "Sr4000Settings":
+    def updated(self, **changes: Any) -> Sr4000Settings:
         """A copy with `changes` applied, validated like checked()."""
         return Sr4000Settings.checked(**{**self.model_dump(), **changes})
 
@@ -276,7 +276,7 @@ class Sr4000Settings(BaseModel):
                 flags |= flag
         return flags
 
-    def with_mode_flags(self, flags: int) -> "Sr4000Settings":
+    def with_mode_flags(self, flags: int) -> Sr4000Settings:
         known = sum(AcquireMode)
         if int(flags) & ~known or int(flags) < 0:
             raise Sr4000SettingsError("mode", hex(int(flags)), "an OR of the AM_* flags "
@@ -304,7 +304,7 @@ class Sr4000Settings(BaseModel):
         return path
 
     @classmethod
-    def from_text(cls, text: str, where: str = "settings") -> "Sr4000Settings":
+    def from_text(cls, text: str, where: str = "settings") -> Sr4000Settings:
         """Parse `key = value` lines; errors name the file and line (`where:line`)."""
         values: dict[str, Any] = {}
         line_of: dict[str, int] = {}
@@ -327,14 +327,14 @@ class Sr4000Settings(BaseModel):
             raise Sr4000SettingsError(exc.key, exc.value, exc.allowed, line) from None
 
     @classmethod
-    def load(cls, path: str | Path) -> "Sr4000Settings":
+    def load(cls, path: str | Path) -> Sr4000Settings:
         """Read a settings file; missing keys take their defaults. A missing file is an error (use
         load_or_default for rvs-libtof's "defaults when there is no file")."""
         path = Path(path)
         return cls.from_text(path.read_text(), where=str(path))
 
     @classmethod
-    def load_or_default(cls, path: str | Path) -> "Sr4000Settings":
+    def load_or_default(cls, path: str | Path) -> Sr4000Settings:
         path = Path(path)
         return cls.load(path) if path.exists() else cls()
 
@@ -504,7 +504,7 @@ class Sr4000(ABC):
         self.version = ""
 
     # -- lifecycle -----------------------------------------------------------------------------
-    def open(self) -> "Sr4000":
+    def open(self) -> Sr4000:
         """Open the camera and send it every setting."""
         with self._lock:
             if self._is_open:
@@ -531,7 +531,7 @@ class Sr4000(ABC):
     def is_open(self) -> bool:
         return self._is_open
 
-    def __enter__(self) -> "Sr4000":
+    def __enter__(self) -> Sr4000:
         return self.open()
 
     def __exit__(self, *exc) -> None:

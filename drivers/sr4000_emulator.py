@@ -32,8 +32,9 @@ from __future__ import annotations
 
 import math
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable, Protocol
+from typing import Protocol
 
 import cv2
 import numpy as np
@@ -43,9 +44,23 @@ from drivers.sim.clock import SimClock
 from drivers.sim.faults import FaultSwitch
 from drivers.sim.render import RenderedView, render
 from drivers.sim.world import World
-from drivers.sr4000 import (AMPLITUDE_SATURATED, AUTO_EXPOSURE_OFF, CODE_FULL_SCALE, CONFIDENCE_FULL, AcquireMode,
-                            ModulationFrequency, Sr4000, Sr4000Error, Sr4000NotAnswering, Sr4000NotFound,
-                            Sr4000Settings, Sr4000Timeout, TofFrame, integration_register, integration_time_ms)
+from drivers.sr4000 import (
+    AMPLITUDE_SATURATED,
+    AUTO_EXPOSURE_OFF,
+    CODE_FULL_SCALE,
+    CONFIDENCE_FULL,
+    AcquireMode,
+    ModulationFrequency,
+    Sr4000,
+    Sr4000Error,
+    Sr4000NotAnswering,
+    Sr4000NotFound,
+    Sr4000Settings,
+    Sr4000Timeout,
+    TofFrame,
+    integration_register,
+    integration_time_ms,
+)
 from toolbox.camera import Intrinsics
 
 # Published calibrations (see the SR4000 reference): MRPT's, and the ROS driver's fallback.

@@ -18,8 +18,18 @@ import threading
 import numpy as np
 
 from drivers.sim.clock import SimClock
-from drivers.sr4000 import (AcquireMode, ModulationFrequency, Sr4000, Sr4000Error, Sr4000LibraryMissing,
-                            Sr4000NotAnswering, Sr4000NotFound, Sr4000Settings, TofFrame, integration_time_ms)
+from drivers.sr4000 import (
+    AcquireMode,
+    ModulationFrequency,
+    Sr4000,
+    Sr4000Error,
+    Sr4000LibraryMissing,
+    Sr4000NotAnswering,
+    Sr4000NotFound,
+    Sr4000Settings,
+    TofFrame,
+    integration_time_ms,
+)
 
 log = logging.getLogger(__name__)
 

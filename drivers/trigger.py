@@ -86,7 +86,7 @@ class TriggerBox(ABC):
         with self._lock:
             return TriggerStatus(self.device, self._is_open, self._pulses, self._last_pulse_s, self._last_error)
 
-    def __enter__(self) -> "TriggerBox":
+    def __enter__(self) -> TriggerBox:
         self.open()
         return self
 

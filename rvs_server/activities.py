@@ -43,7 +43,7 @@ class Activity(ABC):
 
     kind: ClassVar[str]
 
-    def __init__(self, server: "Host", rate_hz: float):
+    def __init__(self, server: Host, rate_hz: float):
         self.server = server
         self.rate_hz = float(rate_hz)
         self.frames = 0

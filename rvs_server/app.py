@@ -16,10 +16,11 @@ import signal
 import stat
 import sys
 import time
+from collections.abc import Awaitable, Mapping
 from dataclasses import dataclass
 from logging.handlers import RotatingFileHandler
 from pathlib import Path
-from typing import Any, Awaitable, Mapping
+from typing import Any
 
 import zmq
 from pydantic import Field, ValidationError
@@ -37,10 +38,10 @@ from .devices import Devices, DevicesConfig
 from .dispatch import CommandSpec, Dispatcher, Module, Registry, Session
 from .files import remove_stale_temporaries, set_storage_cap
 from .jobs import JobCounter, RecoveryStore
+from .native import NativeWorker
 from .protocol import BadRequest
 from .transports.tcp import claim_tcp_port, start_tcp
 from .transports.zmq import ZmqTransport
-from .native import NativeWorker
 from .web import WebView
 
 log = logging.getLogger("rvs")
@@ -81,7 +82,7 @@ class Configuration:
     world: WorldConfig
     world_file: Path | None
     calibration: CalibrationConfig
-    modules: dict[str, "ModuleConfig"]
+    modules: dict[str, ModuleConfig]
 
 
 def read_configuration(config_dir: Path, overrides: Mapping[str, Any], modules: list[Module]) -> Configuration:
@@ -101,8 +102,19 @@ def read_configuration(config_dir: Path, overrides: Mapping[str, Any], modules: 
 
 
 def all_modules() -> list[Module]:
-    from rvs_server import (hazard, hopping, imaging, mapping, navigation, orientation, ptu, routes, simulation,
-                            system, tracking)
+    from rvs_server import (
+        hazard,
+        hopping,
+        imaging,
+        mapping,
+        navigation,
+        orientation,
+        ptu,
+        routes,
+        simulation,
+        system,
+        tracking,
+    )
     return [system.module, ptu.module, imaging.module, mapping.module, navigation.module, hopping.module,
             routes.module, hazard.module, orientation.module, simulation.module, tracking.module]
 
@@ -365,7 +377,7 @@ class Server:
         log.info("RVS %s listening tcp=%s:%d zmq=%s pub=%s web=%s data=%s log=%s", self.version, s.host,
                  tcp_port, self.zmq.router_endpoint, self.zmq.pub_endpoint, web, self.data_dir, self.log_path)
         # One machine-readable line on stdout, for scripts and tests that start the server on port 0.
-        print(f"rvs-server ready tcp={s.host}:{tcp_port} zmq={self.zmq.router_endpoint} "
+        print(f"rvs-server ready tcp={s.host}:{tcp_port} zmq={self.zmq.router_endpoint} "  # noqa: T201  an interface
               f"pub={self.zmq.pub_endpoint} web={web} pid={os.getpid()}", flush=True)
 
     def _web_port(self) -> int:
@@ -532,7 +544,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         server = Server(Path(args.config_dir), overrides)
     except ConfigError as exc:
-        print(f"rvs-server: {exc}", file=sys.stderr)
+        print(f"rvs-server: {exc}", file=sys.stderr)  # noqa: T201  command-line error before logging exists
         return 2
 
     async def run() -> None:
@@ -545,7 +557,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         asyncio.run(run())
     except (OSError, zmq.ZMQError) as exc:  # the port is taken, the address is not ours
-        print(f"rvs-server: cannot listen: {exc}", file=sys.stderr)
+        print(f"rvs-server: cannot listen: {exc}", file=sys.stderr)  # noqa: T201  command-line error on stderr
         server.devices.close_all()
         return 2
     finally:

@@ -9,9 +9,10 @@ from __future__ import annotations
 import difflib
 import tomllib
 import typing
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Any, Generic, Literal, Mapping, TypeVar
+from typing import Annotated, Any, Generic, Literal, TypeVar
 
 import annotated_types
 from pydantic import AfterValidator, BaseModel, BeforeValidator, ConfigDict, Field, ValidationError, model_validator
@@ -294,7 +295,7 @@ def bind_tokens(command: str, tokens: tuple[str, ...] | list[str], config: type[
         extra = free[len(positionals)]
         expected = " ".join(p.upper() for p in positionals) or "no positional arguments"
         raise BadRequest(f"{command}: unexpected argument {extra!r}; usage takes {expected}")
-    for name, token in zip(positionals, free):
+    for name, token in zip(positionals, free, strict=False):  # fewer words: the rest keep their defaults
         if name in values:
             raise BadRequest(f"{command}: {name} given twice")
         values[name] = token

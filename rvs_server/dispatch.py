@@ -14,11 +14,12 @@ import inspect
 import logging
 import os
 import traceback
+from collections.abc import Awaitable, Callable, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from enum import StrEnum
 from pathlib import Path
-from typing import Any, Awaitable, Callable, Literal, Mapping, Protocol
+from typing import Any, Literal, Protocol
 
 from drivers.errors import DeviceFault, DeviceTimeout
 from rvs_server.native import WorkerDied
@@ -27,8 +28,20 @@ from .config import CommandConfig, Settings, bind_tokens, build_config, option_n
 from .host import Host, ModuleScope
 from .jobs import Job, JobContext, JobInterrupted, RecoverySet
 from .products import retention
-from .protocol import (Busy, CommandLine, DeviceError, InternalError, Interrupted, RvsError, Sleeping, StorageFull,
-                       Timeout, Unauthorized, UnknownCommand, WrongMode)
+from .protocol import (
+    Busy,
+    CommandLine,
+    DeviceError,
+    InternalError,
+    Interrupted,
+    RvsError,
+    Sleeping,
+    StorageFull,
+    Timeout,
+    Unauthorized,
+    UnknownCommand,
+    WrongMode,
+)
 
 log = logging.getLogger("rvs.dispatch")
 
@@ -75,7 +88,7 @@ class CommandSpec:
     limits: Callable[[Host], dict[str, str]] | None = None  # (server) -> what help adds from devices
     resumable: bool = True
     open_without_auth: bool = False
-    module: "Module | None" = None
+    module: Module | None = None
 
     @property
     def usage(self) -> str:
@@ -157,7 +170,7 @@ class Request:
     line: str = ""
 
     @classmethod
-    def from_line(cls, parsed: CommandLine) -> "Request":
+    def from_line(cls, parsed: CommandLine) -> Request:
         return cls(command=parsed.command, tokens=parsed.tokens, tag=parsed.tag, line=parsed.text)
 
 

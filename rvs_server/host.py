@@ -10,7 +10,6 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
 if TYPE_CHECKING:
-    from rvs_server.native import NativeWorker
     import logging
 
     from drivers.sim.clock import SimClock
@@ -20,6 +19,7 @@ if TYPE_CHECKING:
     from rvs_server.devices.calibration import Calibration
     from rvs_server.dispatch import CommandSpec, Dispatcher, Registry
     from rvs_server.jobs import RecoveryStore
+    from rvs_server.native import NativeWorker
     from rvs_server.products.manifests import Products
 
 
@@ -30,20 +30,20 @@ class Host(Protocol):
     config_dir: Path
     data_dir: Path
     shared_dir: Path
-    settings: "Settings"             # server.toml
+    settings: Settings             # server.toml
     token: str | None
     started: float                   # time.monotonic() at start
     log_path: Path | None
-    log_handlers: "list[logging.Handler]"
-    clock: "SimClock"
-    devices: "Devices"
-    recovery: "RecoveryStore"
-    products: "Products"
-    dispatcher: "Dispatcher"
-    activities: "Activities"
-    native: "NativeWorker"           # the heavy native steps of jobs, in a child process (native.py)
+    log_handlers: list[logging.Handler]
+    clock: SimClock
+    devices: Devices
+    recovery: RecoveryStore
+    products: Products
+    dispatcher: Dispatcher
+    activities: Activities
+    native: NativeWorker           # the heavy native steps of jobs, in a child process (native.py)
     stopping: bool                   # a shutdown was asked for
-    registry: "Registry"
+    registry: Registry
 
     def settings_of(self, module: str) -> Any:
         """A module's settings (configs/<module>.toml), as last loaded or reloaded."""
@@ -51,10 +51,10 @@ class Host(Protocol):
     def state_of(self, module: str) -> Any:
         """A module's state on this server, made by its Module's `state` factory on first use."""
 
-    def command_defaults(self, spec: "CommandSpec") -> dict[str, Any]:
+    def command_defaults(self, spec: CommandSpec) -> dict[str, Any]:
         """A command's option defaults from its module's TOML file."""
 
-    def calibration(self) -> "Calibration":
+    def calibration(self) -> Calibration:
         """The calibration the maps use."""
 
     def publish(self, topic: str, data: dict[str, Any]) -> None:

@@ -16,9 +16,10 @@ import logging
 import shutil
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import MISSING, dataclass, field, fields
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable
+from typing import TYPE_CHECKING, Any
 
 from .files import write_json_atomic, write_text_atomic
 from .host import Host, ModuleScope
@@ -234,11 +235,11 @@ class JobContext(ModuleScope):
         self.log = logging.getLogger(f"rvs.job.{job.command}")
 
     @property
-    def devices(self) -> "Devices":
+    def devices(self) -> Devices:
         return self.server.devices
 
     @property
-    def clock(self) -> "SimClock":
+    def clock(self) -> SimClock:
         return self.server.clock
 
     @property

@@ -37,7 +37,7 @@ class ServerProcess:
     stderr_path: Path | None = None
     extra_args: list[str] = field(default_factory=list)
 
-    def start(self, timeout: float = 60.0) -> "ServerProcess":
+    def start(self, timeout: float = 60.0) -> ServerProcess:
         self.stderr_path = self.data_dir.parent / f"server-{int(time.time() * 1000)}.stderr"
         # The web view is off unless a test asks for it (extra_args come last and win): its default
         # port is fixed, and servers started side by side must not fight over it.
@@ -63,7 +63,7 @@ class ServerProcess:
     def stderr(self) -> str:
         return self.stderr_path.read_text(errors="replace") if self.stderr_path and self.stderr_path.exists() else ""
 
-    def connect(self, timeout: float = 20.0) -> "LineClient":
+    def connect(self, timeout: float = 20.0) -> LineClient:
         return LineClient(self.host, self.port, timeout)
 
     def stop(self) -> int | None:
@@ -107,7 +107,7 @@ class LineClient:
         self.events: list[str] = []
         self.pending: list[str] = []  # replies read but not yet asked for
 
-    def __enter__(self) -> "LineClient":
+    def __enter__(self) -> LineClient:
         return self
 
     def __exit__(self, *exc) -> None:

@@ -37,7 +37,7 @@ class Intrinsics:
                 raise ValueError(f"{name} = {getattr(self, name)}: must be > 0")
 
     @classmethod
-    def from_fov(cls, width: int, height: int, horizontal_fov: float) -> "Intrinsics":
+    def from_fov(cls, width: int, height: int, horizontal_fov: float) -> Intrinsics:
         """Square pixels, principal point at the image centre, horizontal field of view in radians."""
         f = (width / 2) / float(np.tan(horizontal_fov / 2))
         return cls(width, height, f, f, (width - 1) / 2, (height - 1) / 2)

@@ -108,7 +108,7 @@ class RoverPose:
         return rigid(rotation_rpy(self.roll, self.pitch, self.heading), (self.x, self.y, self.z))
 
     @classmethod
-    def from_matrix(cls, rover_to_world: np.ndarray) -> "RoverPose":
+    def from_matrix(cls, rover_to_world: np.ndarray) -> RoverPose:
         roll, pitch, heading = rpy_of(rover_to_world[:3, :3])
         x, y, z = (float(v) for v in rover_to_world[:3, 3])
         return cls(x, y, z, heading, roll, pitch)
@@ -123,7 +123,7 @@ class SensorMount:
     camera_to_head: np.ndarray
 
     @classmethod
-    def from_offsets(cls, ptu_position, position, rotation_rpy_deg=(0.0, 0.0, 0.0)) -> "SensorMount":
+    def from_offsets(cls, ptu_position, position, rotation_rpy_deg=(0.0, 0.0, 0.0)) -> SensorMount:
         """From a calibration's position (head frame, m) and small rotation (roll, pitch, yaw in
         degrees, applied about the head axes) away from looking straight along head x."""
         rotation = rotation_rpy(*np.radians(rotation_rpy_deg)) @ CAMERA_AXES_IN_HEAD

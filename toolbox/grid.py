@@ -25,7 +25,7 @@ class GridSpec:
     cols: int
 
     @classmethod
-    def covering(cls, x_range: tuple[float, float], y_range: tuple[float, float], cell: float) -> "GridSpec":
+    def covering(cls, x_range: tuple[float, float], y_range: tuple[float, float], cell: float) -> GridSpec:
         """The smallest grid of `cell`-sized cells, aligned to multiples of `cell`, covering the ranges.
 
         Aligning to the cell size makes grids built at different times from different views share
@@ -72,7 +72,7 @@ class GridSpec:
                 "rows": self.rows, "cols": self.cols, "frame": "world (x east, y north, z up), rows northwards"}
 
     @classmethod
-    def from_json(cls, data: dict) -> "GridSpec":
+    def from_json(cls, data: dict) -> GridSpec:
         return cls(float(data["origin_x"]), float(data["origin_y"]), float(data["cell"]),
                    int(data["rows"]), int(data["cols"]))
 
@@ -104,7 +104,7 @@ class MapLayers:
         object.__setattr__(self, "unknown", unknown)
 
     @classmethod
-    def from_cost(cls, spec: GridSpec, cost: np.ndarray, hazard: np.ndarray | None = None) -> "MapLayers":
+    def from_cost(cls, spec: GridSpec, cost: np.ndarray, hazard: np.ndarray | None = None) -> MapLayers:
         """Layers from a cost grid whose NaN cells are unknown."""
         cost = np.asarray(cost, dtype=np.float64)
         hazard = np.zeros(cost.shape, dtype=bool) if hazard is None else hazard

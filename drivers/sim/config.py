@@ -60,7 +60,7 @@ class CraterConfig(_Model):
     rim_height_ratio: float = Field(0.03, ge=0.0, le=0.2)
 
     @model_validator(mode="after")
-    def _check(self) -> "CraterConfig":
+    def _check(self) -> CraterConfig:
         _ordered(self.diameter_range_m, "diameter_range_m")
         return self
 
@@ -86,7 +86,7 @@ class RockConfig(_Model):
     clear_radius_m: float = Field(1.0, ge=0.0)
 
     @model_validator(mode="after")
-    def _check(self) -> "RockConfig":
+    def _check(self) -> RockConfig:
         for name in ("diameter_range_m", "height_ratio_range", "buried_fraction_range", "aspect_range",
                      "albedo_range"):
             _ordered(getattr(self, name), name)
@@ -148,7 +148,7 @@ class DriveError(BaseModel):
     lateral_slip_per_m: float = Field(0.01, ge=0, description="sideways slip, metres per metre driven")
 
     @classmethod
-    def none(cls) -> "DriveError":
+    def none(cls) -> DriveError:
         return cls(turn_scale=0, turn_noise_deg=0, distance_scale=0, heading_drift_deg_per_m=0, lateral_slip_per_m=0)
 
 
@@ -178,7 +178,7 @@ class WorldConfig(_Model):
     sun_sensor: SunSensor = SunSensor()
 
     @model_validator(mode="after")
-    def _check(self) -> "WorldConfig":
+    def _check(self) -> WorldConfig:
         if min(self.size_m) <= 0:
             raise ValueError(f"size_m must be positive, got {self.size_m}")
         if self.rocks.diameter_range_m[0] < 2 * self.cell_m:

@@ -5,7 +5,8 @@ with a 60 degree horizontal field of view, 1.0 m above the ground on the mast, t
 down (the place matchers' thresholds were chosen on this view: tests/bench/bench_route_matchers.py).
 Every grab renders the world under its current sun with cast shadows, then the sensor model of the
 AVT emulator (shot and read noise, 8 bits) at an auto exposure that brings the mean grey level of
-the ground (the lower two thirds of the image) to its target, as a real camera's metering would: a dimmer sun makes the image no darker on average,
+the ground (the lower two thirds of the image) to its target, as a real camera's metering would: a dimmer
+sun makes the image no darker on average,
 but the shadows move and change length with the sun, which is what defeats a brightness-threshold
 matcher.
 """

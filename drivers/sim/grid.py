@@ -20,7 +20,7 @@ class GridSpec:
     cols: int
 
     @classmethod
-    def centred(cls, size_x: float, size_y: float, cell: float, block: int) -> "GridSpec":
+    def centred(cls, size_x: float, size_y: float, cell: float, block: int) -> GridSpec:
         """A grid centred on the world origin, at least size_x by size_y, in whole blocks of cells."""
         cols = block * max(1, int(np.ceil(size_x / cell / block - 1e-9)))
         rows = block * max(1, int(np.ceil(size_y / cell / block - 1e-9)))

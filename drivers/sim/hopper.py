@@ -123,11 +123,11 @@ class Hopper:
     def _streams(self, seed) -> tuple[int | None, dict[str, np.random.Generator]]:
         """Independent streams per part, so turning off one error never changes the others."""
         if isinstance(seed, np.random.Generator):
-            return None, dict(zip(STREAMS, seed.spawn(len(STREAMS))))
+            return None, dict(zip(STREAMS, seed.spawn(len(STREAMS)), strict=True))
         if seed is None:
             seed = int(np.random.SeedSequence([self.config.seed, self.hops]).generate_state(1)[0])
         children = np.random.SeedSequence(int(seed)).spawn(len(STREAMS))
-        return int(seed), {name: np.random.default_rng(child) for name, child in zip(STREAMS, children)}
+        return int(seed), {name: np.random.default_rng(child) for name, child in zip(STREAMS, children, strict=True)}
 
     def _launch(self, speed: float, elevation: float, heading: float,
                 rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:

@@ -101,7 +101,7 @@ class BounceModel(_Model):
     yaw_deg: float = Field(20.0, ge=0.0)
 
     @model_validator(mode="after")
-    def _check(self) -> "BounceModel":
+    def _check(self) -> BounceModel:
         low, high = self.elevation_range_deg
         if not 0.0 < low <= high < 90.0:
             raise ValueError(f"elevation_range_deg must be (low, high) with 0 < low <= high < 90, "

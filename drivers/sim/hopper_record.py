@@ -139,7 +139,7 @@ class HopRecord:
         return folder
 
     @classmethod
-    def load(cls, folder: str | Path) -> "HopRecord":
+    def load(cls, folder: str | Path) -> HopRecord:
         folder = Path(folder)
         document = json.loads((folder / TRUTH_FILE).read_text())
         if document.get("format") != FILE_FORMAT:

@@ -37,7 +37,7 @@ class TriangleSurface:
         self._scene: o3d.t.geometry.RaycastingScene | None = None
         self._dynamic_scene: o3d.t.geometry.RaycastingScene | None = None
 
-    def with_dynamic(self, vertices: np.ndarray, triangles: np.ndarray) -> "TriangleSurface":
+    def with_dynamic(self, vertices: np.ndarray, triangles: np.ndarray) -> TriangleSurface:
         """A new surface: this one's static part (arrays and Embree scene shared, not rebuilt) plus
         `vertices` (V, 3) and `triangles` (T, 3, indices into `vertices`) as its dynamic part, in a
         small scene of its own (milliseconds to build). No triangles: the static surface itself.
@@ -46,7 +46,7 @@ class TriangleSurface:
         static = self.static
         if len(triangles) == 0:
             return static
-        static.scene                             # built once, shared by every version
+        _ = static.scene                         # built once, shared by every version
         vertices = np.ascontiguousarray(vertices, dtype=np.float64)
         triangles = np.ascontiguousarray(triangles, dtype=np.uint32)
         dynamic_scene = o3d.t.geometry.RaycastingScene()

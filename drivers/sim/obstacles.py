@@ -148,7 +148,7 @@ def _box_points(grid: GridSpec, polygon: np.ndarray) -> tuple[np.ndarray, np.nda
 def inside_convex(points: np.ndarray, polygon: np.ndarray) -> np.ndarray:
     """True for points (N, 2) inside or on a convex polygon (K, 2) given counter-clockwise."""
     inside = np.ones(len(points), dtype=bool)
-    for a, b in zip(polygon, np.roll(polygon, -1, axis=0)):
+    for a, b in zip(polygon, np.roll(polygon, -1, axis=0), strict=True):
         edge = b - a
         inside &= edge[0] * (points[:, 1] - a[1]) - edge[1] * (points[:, 0] - a[0]) >= 0
     return inside

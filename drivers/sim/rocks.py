@@ -90,7 +90,7 @@ class RockBodies:
         return len(self.x)
 
     @staticmethod
-    def concat(parts: list["RockBodies"]) -> "RockBodies":
+    def concat(parts: list[RockBodies]) -> RockBodies:
         return RockBodies(**{f.name: np.concatenate([getattr(p, f.name) for p in parts])
                              for f in fields(RockBodies)})
 
@@ -105,11 +105,11 @@ class RockMeshes:
     rock_of_vertex: np.ndarray    # (V,) int32
 
     @staticmethod
-    def concat(parts: list["RockMeshes"], rock_offsets: list[int]) -> "RockMeshes":
+    def concat(parts: list[RockMeshes], rock_offsets: list[int]) -> RockMeshes:
         vertex_offsets = np.cumsum([0] + [len(p.vertices) for p in parts[:-1]])
 
         def shifted(name: str, offsets) -> np.ndarray:
-            return np.concatenate([getattr(p, name) + o for p, o in zip(parts, offsets)])
+            return np.concatenate([getattr(p, name) + o for p, o in zip(parts, offsets, strict=True)])
         return RockMeshes(vertices=np.concatenate([p.vertices for p in parts]),
                           triangles=shifted("triangles", vertex_offsets),
                           rock_of_triangle=shifted("rock_of_triangle", rock_offsets).astype(np.int32),
@@ -314,7 +314,7 @@ def candidate_points(bodies: RockBodies, meshes: RockMeshes, grid: GridSpec) -> 
     col1 = np.clip(np.ceil((high[present, 0] - grid.x_min) / grid.cell) + 1, 0, grid.cols + 1).astype(int)
     row0 = np.clip(np.floor((low[present, 1] - grid.y_min) / grid.cell), 0, grid.rows + 1).astype(int)
     row1 = np.clip(np.ceil((high[present, 1] - grid.y_min) / grid.cell) + 1, 0, grid.rows + 1).astype(int)
-    for r0, r1, c0, c1 in zip(row0, row1, col0, col1):
+    for r0, r1, c0, c1 in zip(row0, row1, col0, col1, strict=True):
         mask[r0:r1, c0:c1] = True
     return np.flatnonzero(mask)
 
@@ -328,7 +328,7 @@ class RockTops:
     rock: np.ndarray
 
     @staticmethod
-    def highest(parts: list["RockTops"]) -> "RockTops":
+    def highest(parts: list[RockTops]) -> RockTops:
         """Merge tops measured on separate sets of rocks: per point, the highest wins."""
         points = np.concatenate([p.points for p in parts])
         heights = np.concatenate([p.heights for p in parts])

@@ -26,7 +26,7 @@ import math
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from toolbox.geometry import CAMERA_AXES_IN_HEAD, rotation_rpy, rotation_x, rotation_y, rotation_z
+from toolbox.geometry import CAMERA_AXES_IN_HEAD, rotation_rpy, rotation_y, rotation_z
 
 from .world import World
 

@@ -12,9 +12,9 @@ from __future__ import annotations
 
 import math
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
@@ -114,7 +114,7 @@ class SimulatedTestbed:
 
     def _build_quietly(self) -> None:
         try:
-            self.world
+            _ = self.world
         except BaseException as exc:  # reported to whoever needs the world next
             self._build_error = exc
 
@@ -160,7 +160,7 @@ class SimulatedTestbed:
 
     @property
     def rover(self) -> Rover:
-        self.world
+        _ = self.world
         assert self._rover is not None
         return self._rover
 

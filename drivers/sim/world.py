@@ -20,9 +20,9 @@ from __future__ import annotations
 import copy
 import math
 import threading
-from pathlib import Path
 from dataclasses import dataclass
 from functools import cached_property
+from pathlib import Path
 
 import numpy as np
 
@@ -126,7 +126,7 @@ class World:
     def heights(self) -> np.ndarray:
         return self._state.heights
 
-    def snapshot(self) -> "World":
+    def snapshot(self) -> World:
         """This world as it is now, for a reader asking several questions (a render): it shares every
         array and does not see later additions or removals. It cannot be changed itself."""
         frozen = copy.copy(self)   # one reference to the state is copied: atomic
@@ -244,8 +244,9 @@ class World:
             return
         offsets = np.cumsum([0] + [len(o.vertices) for o in obstacles[:-1]])
         first = len(built.rocks)
-        surface = built.surface.with_dynamic(np.concatenate([o.vertices for o in obstacles]),
-                                             np.concatenate([o.triangles + k for o, k in zip(obstacles, offsets)]))
+        surface = built.surface.with_dynamic(
+            np.concatenate([o.vertices for o in obstacles]),
+            np.concatenate([o.triangles + k for o, k in zip(obstacles, offsets, strict=True)]))
         rock_of_triangle = Stacked(built.rock_of_triangle, np.concatenate(
             [np.full(len(o.triangles), first + i, np.int32) for i, o in enumerate(obstacles)]))
         rocks = np.concatenate([built.rocks, np.array([o.row for o in obstacles], dtype=ROCK_TABLE_DTYPE)])
@@ -253,7 +254,7 @@ class World:
 
     # ----------------------------------------------------------------------------- building
     @classmethod
-    def build(cls, config: WorldConfig | None = None) -> "World":
+    def build(cls, config: WorldConfig | None = None) -> World:
         """Generate a world from its config: ground, its mesh, rocks until the cover is met, albedo."""
         config = config or WorldConfig()
         rng = _streams(config.seed)
@@ -287,7 +288,7 @@ class World:
         return path
 
     @classmethod
-    def load(cls, path: str | Path) -> "World":
+    def load(cls, path: str | Path) -> World:
         with np.load(Path(path), allow_pickle=False) as data:
             if str(data["format"]) != FILE_FORMAT:
                 raise ValueError(f"{path}: not a {FILE_FORMAT} file (format {data['format']})")

@@ -44,7 +44,7 @@ class FrameSettings:
 class FramePoints:
     """Grabs one frame of `settings.sensor` for an activity and makes points of it; rectification made once."""
 
-    def __init__(self, server: "Host", settings: FrameSettings):
+    def __init__(self, server: Host, settings: FrameSettings):
         self.settings = settings
         self.device = SENSOR_DEVICE[settings.sensor]
         mapping = server.settings_of("mapping")
@@ -82,7 +82,8 @@ class FramePoints:
         rect, config = self._rectified
         left, right = (grey(frame[role].image) for role in ("left", "right"))
         points, valid = stereo_points(left, right, rect, config)
-        return points, valid & (points[..., 2] < self.max_range_m), camera_to_world(pose, self.mounts["left"], pan, tilt)
+        return (points, valid & (points[..., 2] < self.max_range_m),
+                camera_to_world(pose, self.mounts["left"], pan, tilt))
 
     def _tof(self, devices: Any) -> Any:
         tof = devices.tof

@@ -42,7 +42,7 @@ __all__ = ["HopRecord", "Hopper", "HopperBackend", "HopperConfig", "HopperDevice
 class _Body:
     """The simulated hopper and the world it stands on; outlives a reinit that keeps the world (take_over)."""
 
-    world: "World | None" = None
+    world: World | None = None
     hopper: Hopper | None = None
     sequence: object | None = None   # a new token each time a hopper is put at the start
 
@@ -61,11 +61,11 @@ class HopperDevice:
 
     name = "hopper"
 
-    def __init__(self, testbed: "SimulatedTestbed"):
+    def __init__(self, testbed: SimulatedTestbed):
         self.testbed = testbed
         self._body = _Body()
 
-    def take_over(self, previous: "HopperDevice") -> None:
+    def take_over(self, previous: HopperDevice) -> None:
         """reinit builds the devices anew: on the same test bed (the same world) the hopper stays where
         it landed; on a new one the next hop starts a new sequence at the start."""
         if previous.testbed is self.testbed:

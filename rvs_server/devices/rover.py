@@ -24,8 +24,9 @@ from __future__ import annotations
 
 import math
 from abc import ABC, abstractmethod
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
-from typing import TYPE_CHECKING, Callable, ClassVar, Iterator, Literal, Sequence
+from typing import TYPE_CHECKING, ClassVar, Literal
 
 import numpy as np
 
@@ -48,7 +49,8 @@ POSE_POLL_S = 0.5
 GROUND_RADIUS_M = 0.4   # the map's cells within this of the rover's centre carry its wheels (0.38 x 0.40 m apart)
 NO_FORWARD_CAMERA = "the forward camera is the simulated rover's body-fixed camera and the devices are real"
 
-__all__ = ["Drive", "DriveGuard", "DriveMode", "DriveStopped", "ForwardCamera", "ForwardCameraConfig", "GncDrive", "Moved", "Pace", "RoverDevice",
+__all__ = ["Drive", "DriveGuard", "DriveMode", "DriveStopped", "ForwardCamera", "ForwardCameraConfig", "GncDrive",
+           "Moved", "Pace", "RoverDevice",
            "SimulatedDrive", "SunReading", "WorldEdge", "dead_reckon", "turn_and_distance"]
 
 
@@ -81,7 +83,7 @@ class DriveStopped(BadRequest):
     """A guard stopped the rover short of a hazard (PROTOCOL.md: `drive stopped: hazard: SENTENCE`).
     `moved` is the part of the move that was done; the pose estimate is where the rover stopped."""
 
-    def __init__(self, guard: str, sentence: str, moved: "Moved"):
+    def __init__(self, guard: str, sentence: str, moved: Moved):
         super().__init__(f"drive stopped: {guard}: {sentence}")
         self.guard, self.sentence, self.moved = guard, sentence, moved
 
@@ -93,13 +95,13 @@ class DriveGuard(ABC):
     name: ClassVar[str]
 
     @abstractmethod
-    def check(self, job: "JobContext", pose: RoverPose, direction: int, remaining_m: float, speed_m_s: float,
+    def check(self, job: JobContext, pose: RoverPose, direction: int, remaining_m: float, speed_m_s: float,
               started_s: float) -> str | None:
         """Before the rover drives on from `pose` (direction +1 forward, -1 backward, remaining_m of
         this leg left, at speed_m_s, in a move begun at simulated time started_s): None to go on, or
         the sentence why it stops. May wait, in simulated time, for a fresh look ahead."""
 
-    def stopped(self, sentence: str, estimate: RoverPose, truth: dict | None) -> None:
+    def stopped(self, sentence: str, estimate: RoverPose, truth: dict | None) -> None:  # noqa: B027  optional hook
         """The rover stopped for this guard: `truth` is the simulator's view of the stop, if any."""
 
 
@@ -128,15 +130,15 @@ class Drive(ABC):
 
     simulated: ClassVar[bool]
 
-    def __init__(self, rover: "RoverDevice"):
+    def __init__(self, rover: RoverDevice):
         self.rover = rover
 
     @abstractmethod
-    def act(self, job: "JobContext", kind: str, value: float, pace: Pace) -> Moved:
+    def act(self, job: JobContext, kind: str, value: float, pace: Pace) -> Moved:
         """One action: kind turn (value radians, counter-clockwise), forward or backward (metres)."""
 
     @abstractmethod
-    def waypoints(self, job: "JobContext", waypoints: Sequence[Sequence[float]], start: RoverPose, pace: Pace,
+    def waypoints(self, job: JobContext, waypoints: Sequence[Sequence[float]], start: RoverPose, pace: Pace,
                   goal: tuple[float, float], cycle: int,
                   announce: Callable[[Sequence[float] | None], None]) -> Iterator[Moved]:
         """Drive to the waypoints from start, one Moved per part done; between two, the caller may
@@ -147,7 +149,7 @@ class Drive(ABC):
         """The simulated rover's true x, y, heading for truth records; None when no simulator drives."""
         return None
 
-    def resume_at(self, x: float, y: float, heading: float) -> None:
+    def resume_at(self, x: float, y: float, heading: float) -> None:  # noqa: B027  optional hook, a no-op here
         """A resumed job's rover stands where it stopped (a real one stays there): nothing to do."""
 
 
@@ -157,11 +159,11 @@ class SimulatedDrive(Drive):
 
     simulated = True
 
-    def act(self, job: "JobContext", kind: str, value: float, pace: Pace) -> Moved:
+    def act(self, job: JobContext, kind: str, value: float, pace: Pace) -> Moved:
         turn, distance = action_motion(kind, value)
         return self.move(job, turn, distance, pace)
 
-    def waypoints(self, job: "JobContext", waypoints: Sequence[Sequence[float]], start: RoverPose, pace: Pace,
+    def waypoints(self, job: JobContext, waypoints: Sequence[Sequence[float]], start: RoverPose, pace: Pace,
                   goal: tuple[float, float], cycle: int,
                   announce: Callable[[Sequence[float] | None], None]) -> Iterator[Moved]:
         for target in list(waypoints):
@@ -172,7 +174,7 @@ class SimulatedDrive(Drive):
             yield moved
             start = self.rover.pose_estimate   # the caller may have corrected it (an orient look between legs)
 
-    def move(self, job: "JobContext", turn: float, distance: float, pace: Pace, start: RoverPose | None = None,
+    def move(self, job: JobContext, turn: float, distance: float, pace: Pace, start: RoverPose | None = None,
              incline: bool = False) -> Moved:
         """Turn, then drive (negative: backward), sample by sample in simulated time, so a guard can
         stop the rover between two samples (DriveStopped). The estimate is dead-reckoned from start
@@ -256,7 +258,7 @@ class GncDrive(Drive):
 
     simulated = False
 
-    def act(self, job: "JobContext", kind: str, value: float, pace: Pace) -> Moved:
+    def act(self, job: JobContext, kind: str, value: float, pace: Pace) -> Moved:
         reports = self.rover.reports
         self.rover.hand_over_sensors()
         shown = math.degrees(value) if kind == "turn" else value
@@ -265,7 +267,7 @@ class GncDrive(Drive):
         self.rover.wait_for_pose(job, reports, pace.pose_timeout_s, f"the route action {kind} {shown:g}")
         return Moved(self.rover.pose_estimate, None)
 
-    def waypoints(self, job: "JobContext", waypoints: Sequence[Sequence[float]], start: RoverPose, pace: Pace,
+    def waypoints(self, job: JobContext, waypoints: Sequence[Sequence[float]], start: RoverPose, pace: Pace,
                   goal: tuple[float, float], cycle: int,
                   announce: Callable[[Sequence[float] | None], None]) -> Iterator[Moved]:
         reports = self.rover.reports
@@ -303,7 +305,7 @@ class RoverDevice:
 
     name = "rover"
 
-    def __init__(self, testbed: "SimulatedTestbed", simulated: Callable[[], bool],
+    def __init__(self, testbed: SimulatedTestbed, simulated: Callable[[], bool],
                  sharing: DeviceSharing | None = None):
         self.testbed = testbed
         self._simulated = simulated
@@ -316,7 +318,7 @@ class RoverDevice:
     def simulated(self) -> bool:
         return self._simulated()
 
-    def take_over(self, previous: "RoverDevice") -> None:
+    def take_over(self, previous: RoverDevice) -> None:
         """reinit builds the devices anew, and the rover has not moved: share the previous device's
         estimate and reports (a `pose` sent meanwhile lands in both), and keep the forward camera
         (its noise stream continues on the same world)."""
@@ -357,7 +359,7 @@ class RoverDevice:
     def new_epoch(self) -> None:
         self._pose.epoch += 1
 
-    def wait_for_pose(self, job: "JobContext", reports: int, timeout_s: float, after: str) -> None:
+    def wait_for_pose(self, job: JobContext, reports: int, timeout_s: float, after: str) -> None:
         """Wait (in simulated time; `break` ends it) until the GNC reports a pose after the count of
         reports was `reports`; Timeout after timeout_s, naming what it waited `after`."""
         waited = 0.0

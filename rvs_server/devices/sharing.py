@@ -18,8 +18,8 @@ here, once, instead of in every command:
 from __future__ import annotations
 
 import threading
+from collections.abc import Iterator
 from contextlib import contextmanager
-from typing import Iterator
 
 from rvs_server.protocol import Busy
 
@@ -93,7 +93,7 @@ class DeviceSharing:
 
     def claim_sentence(self, name: str) -> str:
         activity = self.claimed_by(name) or "an activity"
-        from rvs_server.activities import COMMANDS   # here: the activities module imports the devices' users
+        from rvs_server.activities import COMMANDS  # here: the activities module imports the devices' users
         stop = COMMANDS.get(activity, ("", f"{activity}-stop"))[1]
         return f"the {name} is steered by the {activity} activity; {stop} first"
 

@@ -17,7 +17,6 @@ import time
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any
 
-
 from rvs_server.activities import Activity
 from rvs_server.devices.frame_points import SENSOR_DEVICE, FramePoints, FrameSettings
 from toolbox.geometry import RoverPose

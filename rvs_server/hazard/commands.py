@@ -56,7 +56,7 @@ class HazardStartConfig(CommandConfig):
     output: SafeName | None = Field(None, description="product name; default hazard-TIME")
 
 
-def _validate_start(server: "Host", cfg: HazardStartConfig) -> None:
+def _validate_start(server: Host, cfg: HazardStartConfig) -> None:
     if server.stopping:
         raise WrongMode("hazard-start: the server is shutting down")
     if server.dispatcher.sleep_until is not None:

@@ -215,4 +215,5 @@ def corridor_picture(log: FrameLog, views: list[CorridorView], memory: HazardMem
                                       ("nearest hazard", (255, 220, 0)), ("stop", (255, 0, 255))])
     states = log.states
     return with_title(picture, f"hazard ({sensor}): {log.frames} frames, {states['hazard']} with a hazard in the "
-                               f"path, {states['unknown']} unknown, {len(log.stops)} stops; last {len(views)} corridors")
+                               f"path, {states['unknown']} unknown, {len(log.stops)} stops; "
+                               f"last {len(views)} corridors")

@@ -236,7 +236,7 @@ def hop_map(ctx: JobContext, cfg: HopMapConfig) -> dict[str, Any]:
                           "number"), points, colours, hops)
     product.write_json("map.json", {"grid": spec.to_json(), "hops": [
         {"hop": h.product, "plan": h.plan, "points": int(len(p)), "launch_m": h.launch,
-         "touchdown_m": h.flight[-1] if h.flight else None} for h, (_, p, _) in zip(entries, clouds)]},
+         "touchdown_m": h.flight[-1] if h.flight else None} for h, (_, p, _) in zip(entries, clouds, strict=True)]},
         "the hops in the map, their clouds' sizes and estimated launch and touchdown")
     result = ctx.finish_product(product)
     return {**result, "hops": len(entries), "points": len(points), "cells": f"{spec.rows}x{spec.cols}",

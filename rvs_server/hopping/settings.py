@@ -84,7 +84,7 @@ class HoppingSettings(Settings):
                                "directory")
 
     @model_validator(mode="after")
-    def _reachable(self) -> "HoppingSettings":
+    def _reachable(self) -> HoppingSettings:
         if not self.min_hop_m < self.max_hop_m:
             raise ValueError(f"min_hop_m {self.min_hop_m:g} must be less than max_hop_m {self.max_hop_m:g}")
         reach = float(hop_range(self.max_speed_mps, math.radians(self.elevation_deg), self.gravity_mps2))

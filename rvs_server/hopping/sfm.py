@@ -174,7 +174,7 @@ def reconstruct_hop(frames: np.ndarray, timestamps: np.ndarray, intrinsics: Intr
     return replace(result, timings=timings)
 
 
-def reconstruct_hop_quietly(*args: Any, **kwargs: Any) -> "HopReconstruction":
+def reconstruct_hop_quietly(*args: Any, **kwargs: Any) -> HopReconstruction:
     """reconstruct_hop with COLMAP's per-image INFO lines off (its warnings and errors kept), as the
     native worker runs it."""
     level = pycolmap.logging.minloglevel
@@ -603,7 +603,7 @@ def consistent_points(pairs: list[StereoPair], maps: list[PairDepth],
     nearest neighbours are asked first and only about points still short of votes: most points are
     settled by the first one, which keeps this linear in the points rather than in points x pairs."""
     all_points, all_colours = [], []
-    for k, (pair, result) in enumerate(zip(pairs, maps)):
+    for k, (pair, result) in enumerate(zip(pairs, maps, strict=True)):
         points, flat = rectified_points(pair, result.depth)
         votes = np.zeros(len(points), int)
         for m in _neighbours(k, len(pairs), config.neighbour_pairs):

@@ -19,24 +19,43 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 import numpy as np
 import pycolmap
 from pydantic import Field
 
 from rvs_server.config import Point
-from rvs_server.hopping.estimate import (EstimateError, EstimateParams, FitParams, HopEstimate, estimate_hop,
-                                         flight_check)
+from rvs_server.hopping.estimate import (
+    EstimateError,
+    EstimateParams,
+    FitParams,
+    HopEstimate,
+    estimate_hop,
+    flight_check,
+)
 from rvs_server.hopping.settings import Mapper, SfmSetting
 from rvs_server.hopping.sfm import HopReconstruction, SfmConfig, densify, reconstruct_hop_quietly
 from rvs_server.hopping.store import HopObservation, cloud_of, load_observation
 from rvs_server.products.ply import read_ply
 from rvs_server.workflow import Operations, StepContext, StepParams
-from toolbox.hopping import (FlightFit, HopResult, IcpRound, LandingEllipse, LandingParams, LandingPlan, Launch,
-                             NoGroundError, OverlapAlignment, Plane, TopDown, plan_landing)
+from toolbox.hopping import (
+    FlightFit,
+    HopResult,
+    IcpRound,
+    LandingEllipse,
+    LandingParams,
+    LandingPlan,
+    Launch,
+    NoGroundError,
+    OverlapAlignment,
+    Plane,
+    TopDown,
+    plan_landing,
+)
 
 operations = Operations()
 operations.result_types(HopReconstruction, HopEstimate, HopResult, FlightFit, OverlapAlignment, IcpRound,

@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from rvs_server.files import atomic_file, save_npz_atomic
+from rvs_server.files import save_npz_atomic
 from rvs_server.hopping.sfm import HopReconstruction
 from toolbox.camera import Intrinsics
 

@@ -17,7 +17,6 @@ from pydantic import Field
 
 from rvs_server.config import CommandConfig, Range, SafeName, Settings
 from rvs_server.dispatch import Module
-from rvs_server.files import atomic_file
 from rvs_server.jobs import JobContext
 from rvs_server.mapping.steps import operations
 from rvs_server.mapping.stored_views import keep_views
@@ -258,8 +257,9 @@ def write_truth_grids(ctx: JobContext, product: Any, spec: GridSpec, acquired: d
                                       [("clear", (70, 160, 70)), (f"rock > {truth_step} m", (220, 60, 50))],
                                       "true obstacles"), f"{product.name}: truth"))
     if acquired is not None:
-        product.write_json("truth/views.json", [np.asarray(v.get("true_camera_to_world", np.full((4, 4), np.nan))).tolist()
-                                                for v in acquired["views"]], "true camera-to-world pose of each view")
+        product.write_json("truth/views.json",
+                           [np.asarray(v.get("true_camera_to_world", np.full((4, 4), np.nan))).tolist()
+                            for v in acquired["views"]], "true camera-to-world pose of each view")
 
 
 # ---------------------------------------------------------------------------------------------

@@ -18,9 +18,10 @@ import json
 import shutil
 import tempfile
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 from rvs_server.app import load_module_config
 from rvs_server.devices.calibration import Calibration
@@ -130,7 +131,8 @@ def remap(source: str | Path, workflow_file: str | Path, data_dir: str | Path | 
         for step in workflow.steps:        # the stored acquisition stands in for the steps that used devices
             if step.op in ACQUISITION_OPS:
                 for suffix in (".npz", ".json"):
-                    shutil.copyfile(source / FOLDER / f"{stored_key(step.op)}{suffix}", checkpoints / f"{step.name}{suffix}")
+                    shutil.copyfile(source / FOLDER / f"{stored_key(step.op)}{suffix}",
+                                    checkpoints / f"{step.name}{suffix}")
         results, provenance = run_workflow(workflow, operations, params, job, checkpoints)  # type: ignore[arg-type]
     for record in provenance:
         if "seconds" in record:

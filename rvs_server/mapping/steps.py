@@ -8,16 +8,17 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 from pydantic import Field
 
 from rvs_server.config import Range
 from rvs_server.workflow import Operations, StepContext, StepParams
-from toolbox.colour import grey
 from toolbox.camera import Intrinsics
+from toolbox.colour import grey
 from toolbox.geometry import RoverPose, camera_to_world, footprint_polygon, relative_pose
 from toolbox.mapping import dem as dem_tools
 from toolbox.mapping import hazard as hazard_tools
@@ -356,7 +357,8 @@ def hazards(step: StepContext, params: HazardParams, dem: dict) -> dict[str, Any
 
 
 @operations.register("ortho.views", inputs=("dem", "acquired"), optional_inputs=("aligned",))
-def ortho(step: StepContext, params: StepParams, dem: dict, acquired: dict, aligned: dict | None = None) -> dict[str, Any]:
+def ortho(step: StepContext, params: StepParams, dem: dict, acquired: dict,
+          aligned: dict | None = None) -> dict[str, Any]:
     """Each view's intensity image draped on the DEM through the calibration; the best view per cell.
     With `aligned`, the views' poses get the localisation's correction first."""
     job = step.job

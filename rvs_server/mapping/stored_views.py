@@ -84,7 +84,8 @@ def load_views(product_dir: Path) -> StoredViews:
 
 
 def calibration_to_json(calibration: Calibration) -> dict[str, Any]:
-    return {"mounts": {name: {"ptu_position": list(m.ptu_position), "camera_to_head": np.asarray(m.camera_to_head).tolist()}
+    return {"mounts": {name: {"ptu_position": list(m.ptu_position),
+                              "camera_to_head": np.asarray(m.camera_to_head).tolist()}
                        for name, m in calibration.mounts.items()},
             "tof_intrinsics": dataclasses.asdict(calibration.tof_intrinsics),
             "rover_length_m": calibration.rover_length_m, "rover_width_m": calibration.rover_width_m,

@@ -10,8 +10,9 @@ from __future__ import annotations
 
 import csv
 import math
+from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, Any, Literal, Sequence
+from typing import TYPE_CHECKING, Annotated, Any, Literal
 
 import cv2
 import numpy as np
@@ -30,9 +31,21 @@ from toolbox.colour import colourise, with_colour_bar, with_title
 from toolbox.geometry import RoverPose
 from toolbox.grid import GridSpec
 from toolbox.mapping.hazard import HAZARD, UNKNOWN
-from toolbox.planning import (MapLayers, PlanningParams, blank_map_spanning, cells_to_world, distance_to_border,
-                              drivable_prefix, enclosed_unknown, fuse_maps, inside_box, outside_box, plan_path,
-                              terrain_cost, with_hazards)
+from toolbox.planning import (
+    MapLayers,
+    PlanningParams,
+    blank_map_spanning,
+    cells_to_world,
+    distance_to_border,
+    drivable_prefix,
+    enclosed_unknown,
+    fuse_maps,
+    inside_box,
+    outside_box,
+    plan_path,
+    terrain_cost,
+    with_hazards,
+)
 
 if TYPE_CHECKING:
     from rvs_server.host import Host
@@ -156,7 +169,7 @@ class NavigationSettings(Settings):
     pose_timeout_s: float = Field(900.0, gt=0, description="how long navigate waits for the GNC's pose")
 
     @model_validator(mode="after")
-    def _close_look_reaches_past_the_stop(self) -> "NavigationSettings":
+    def _close_look_reaches_past_the_stop(self) -> NavigationSettings:
         for sensor in ("tof", "stereo"):
             stop = look_distance(self, sensor)
             if self.look_first.of(sensor) and self.close_look_m <= stop:
@@ -375,14 +388,17 @@ def write_plan(product: Any, fused: MapLayers, plan: Any, drivable: Any, local: 
     rgb[plan.hazards.mask] = (200, 50, 40)
     rgb[fused.hazard] = (120, 20, 20)
     picture = draw_path(rgb, spec, plan, drivable, start, goal)
-    write_png(product.add("plan.png", "cost map, unknown (grey), grown hazards (red), A* path (white), waypoints, drivable part (cyan)"),
-              with_title(with_colour_bar(picture, 0.0, high, "cost per metre; grey: unknown; red: hazard grown by the rover",
+    write_png(product.add("plan.png", "cost map, unknown (grey), grown hazards (red), A* path (white), waypoints, "
+                                      "drivable part (cyan)"),
+              with_title(with_colour_bar(picture, 0.0, high,
+                                         "cost per metre; grey: unknown; red: hazard grown by the rover",
                                          cmap="viridis"), f"{product.name}: plan-path"))
     top = float(np.nanpercentile(ortho, 99)) if np.isfinite(ortho).any() else 1.0
     picture = draw_path(colourise(ortho, 0.0, top, "gray"), local.spec, plan, drivable, start, goal)
     write_png(product.add("plan-ortho.png", "the path on the ortho-image of the local map"),
               with_title(picture, f"{product.name}: path on the ortho-image"))
-    rows = [{"index": i, "x": float(x), "y": float(y), "drivable": bool(drivable is not None and i < len(drivable.waypoints))}
+    rows = [{"index": i, "x": float(x), "y": float(y),
+             "drivable": bool(drivable is not None and i < len(drivable.waypoints))}
             for i, (x, y) in enumerate(plan.waypoints)]
     product.write_json("waypoints.json", {"found": plan.found, "reason": plan.reason, "message": plan.message,
                                           "cost": plan.cost if plan.found else None,

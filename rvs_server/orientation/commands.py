@@ -35,13 +35,13 @@ class OrientConfig(CommandConfig):
 SENSOR_DEVICE = {"stereo": "cameras", "tof": "tof"}
 
 
-def _validate(server: "Host", cfg: OrientConfig) -> None:
+def _validate(server: Host, cfg: OrientConfig) -> None:
     sensor = cfg.sensor or server.settings_of("orientation").sensor
     server.devices[SENSOR_DEVICE[sensor]].require_healthy()
 
 
 @module.job("orient", OrientConfig, devices=("ptu",), validate=_validate)
-def orient(ctx: "JobContext", cfg: OrientConfig) -> dict[str, Any]:
+def orient(ctx: JobContext, cfg: OrientConfig) -> dict[str, Any]:
     """Acquire in the moving direction and compute the rover's motion and heading since the last look."""
     settings: OrientSettings = ctx.settings
     sensor = cfg.sensor or settings.sensor

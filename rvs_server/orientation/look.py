@@ -1,6 +1,7 @@
 """One look: the PTU turned along the rover's heading (pan 0, the orient tilt) or where the odometer
-aims it (back at its keyframe's ground after a manoeuvre), one stereo pair or SR4000 frame, and what the rover's other sensors read at that instant (inclinometer, sun
-sensor), with the dead-reckoned estimate the look is taken from."""
+aims it (back at its keyframe's ground after a manoeuvre), one stereo pair or SR4000 frame, and what the
+rover's other sensors read at that instant (inclinometer, sun sensor), with the dead-reckoned estimate the look
+is taken from."""
 from __future__ import annotations
 
 import math
@@ -38,7 +39,7 @@ class Look:
     depth: DepthFrame | None = None          # tof
 
 
-def point_head(ctx: "JobContext", pan_deg: float, tilt_deg: float) -> tuple[float, float]:
+def point_head(ctx: JobContext, pan_deg: float, tilt_deg: float) -> tuple[float, float]:
     """Turn the PTU to the angles and wait until it stands; the angles it reports."""
     device = ctx.devices.ptu
     driver = device.require()
@@ -47,14 +48,14 @@ def point_head(ctx: "JobContext", pan_deg: float, tilt_deg: float) -> tuple[floa
     return device.read_position()
 
 
-def view_limits(ctx: "JobContext", keep_off_deg: float = 1.0) -> tuple[tuple[float, float], tuple[float, float]]:
+def view_limits(ctx: JobContext, keep_off_deg: float = 1.0) -> tuple[tuple[float, float], tuple[float, float]]:
     """The pan and tilt ranges (degrees) a look may point in: the unit's own, a little inside."""
     limits = ctx.devices.ptu.require().limits
     (pan_lo, pan_hi), (tilt_lo, tilt_hi) = limits.range_deg("pan"), limits.range_deg("tilt")
     return (pan_lo + keep_off_deg, pan_hi - keep_off_deg), (tilt_lo + keep_off_deg, min(tilt_hi - keep_off_deg, 0.0))
 
 
-def take_look(ctx: "JobContext", sensor: str, settings: OrientSettings, pan_deg: float = 0.0,
+def take_look(ctx: JobContext, sensor: str, settings: OrientSettings, pan_deg: float = 0.0,
               tilt_deg: float | None = None) -> Look:
     """One look: the head turned to (pan, tilt), default along the heading at the orient tilt."""
     started = time.perf_counter()

@@ -250,7 +250,8 @@ class Odometer:
         except OdometryFailure:
             return
         dead_reckoned = key.belief.rover_to_world @ key.camera_to_rover @ guess @ invert(look.camera_to_rover)
-        lost = np.diag([settings.lost_sigma_m ** 2, settings.lost_sigma_m ** 2, math.radians(settings.lost_sigma_deg) ** 2])
+        lost = np.diag([settings.lost_sigma_m ** 2, settings.lost_sigma_m ** 2,
+                        math.radians(settings.lost_sigma_deg) ** 2])
         belief = PlanarBelief(_level(RoverPose.from_matrix(dead_reckoned), look.roll, look.pitch),
                               key.belief.covariance + lost)
         self.keyframes += 1
@@ -299,9 +300,9 @@ class Odometer:
         off_deg = abs(math.degrees(wrap(measured[2] - wheels[2])))
         limit_m, limit_deg = _wheel_limits(settings, driven, turned)
         if off_m > limit_m or off_deg > limit_deg:
-            raise OdometryFailure("diverged", f"the {look.sensor} motion departs from the wheels' by {off_m:.2f} m and "
-                                  f"{off_deg:.1f} deg after {driven:.2f} m and {turned:.1f} deg: at most {limit_m:.2f} m "
-                                  f"and {limit_deg:.1f} deg believed (orient.toml wheels_*)")
+            raise OdometryFailure("diverged", f"the {look.sensor} motion departs from the wheels' by {off_m:.2f} m "
+                                  f"and {off_deg:.1f} deg after {driven:.2f} m and {turned:.1f} deg: at most "
+                                  f"{limit_m:.2f} m and {limit_deg:.1f} deg believed (orient.toml wheels_*)")
 
     def _frame(self, look: Look) -> Any:
         if look.sensor == "stereo":
@@ -356,7 +357,7 @@ def _level(pose: RoverPose, roll: float, pitch: float) -> np.ndarray:
     return RoverPose(pose.x, pose.y, pose.z, pose.heading, roll, pitch).to_world()
 
 
-def odometer_of(server: "Host") -> Odometer:
+def odometer_of(server: Host) -> Odometer:
     return server.state_of("orientation")
 
 
@@ -371,7 +372,7 @@ class Sighting:
     home: Look | None
 
 
-def look_and_match(ctx: "JobContext", sensor: str, settings: OrientSettings, apply: bool = True) -> Sighting:
+def look_and_match(ctx: JobContext, sensor: str, settings: OrientSettings, apply: bool = True) -> Sighting:
     """Aim, look, match; after a pointed look, re-key along the heading. OrientFailed (with `look`
     and `aim` set on it) when the look cannot be matched; the caller applies the belief."""
     rover, odometer = ctx.devices.rover, odometer_of(ctx.server)
@@ -393,7 +394,7 @@ def look_and_match(ctx: "JobContext", sensor: str, settings: OrientSettings, app
     return Sighting(look, aim, outcome, home)
 
 
-def orient_here(ctx: "JobContext", sensor: str, settings: OrientSettings) -> Outcome:
+def orient_here(ctx: JobContext, sensor: str, settings: OrientSettings) -> Outcome:
     """One look matched by the server's odometer, the belief made the rover's pose estimate: for jobs
     that orient between their moves (navigate, route-follow). OrientFailed leaves the estimate as
     dead reckoning has it."""

@@ -31,7 +31,8 @@ def _look(look: Look) -> dict[str, Any]:
     return {"sensor": look.sensor, "pan_tilt_deg": list(look.pan_tilt_deg),
             "estimate_before": {"x": estimate.x, "y": estimate.y, "heading_deg": math.degrees(estimate.heading)},
             "inclinometer_deg": {"roll": math.degrees(look.roll), "pitch": math.degrees(look.pitch)},
-            "sun_sensor": None if look.sun is None else {"body": look.sun.body.tolist(), "world": look.sun.world.tolist(),
+            "sun_sensor": None if look.sun is None else {"body": look.sun.body.tolist(),
+                                                          "world": look.sun.world.tolist(),
                                                           "sigma_deg": math.degrees(look.sun.sigma)}}
 
 
@@ -51,10 +52,12 @@ def write_outcome(product: Any, sighting: Sighting, applied: bool) -> None:
             "belief": _belief(outcome.belief), "odometry_only": _belief(outcome.odometry),
             "previous": _belief(outcome.previous),
             "motion": None if motion is None else {
-                "key_from_new": motion.key_from_new.tolist(), "covariance_rotvec_translation": motion.covariance.tolist(),
+                "key_from_new": motion.key_from_new.tolist(),
+                "covariance_rotvec_translation": motion.covariance.tolist(),
                 "matches": motion.matches, "inliers": motion.inliers, "overlap": motion.overlap, "rms": motion.rms,
                 "method": motion.method},
-            "sun": None if fix is None else {"heading_deg": math.degrees(fix.heading), "sigma_deg": math.degrees(fix.sigma),
+            "sun": None if fix is None else {"heading_deg": math.degrees(fix.heading),
+                                             "sigma_deg": math.degrees(fix.sigma),
                                              "innovation_sigmas": fix.innovation_sigmas, "used": fix.used},
             "odometry_ms": 1000.0 * outcome.odometry_s, "aim": _aim(sighting.aim),
             "rekeyed_along_heading": sighting.home is not None}

@@ -23,14 +23,15 @@ import shutil
 import sqlite3
 import threading
 import time
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Iterable
+from typing import TYPE_CHECKING, Any
 
 from pydantic import Field
 
-from rvs_server.config import Settings
 from rvs_server import files
+from rvs_server.config import Settings
 
 if TYPE_CHECKING:
     from rvs_server.host import Host
@@ -106,7 +107,7 @@ def _size_and_mtime(folder: Path) -> tuple[int, float]:
 # What must stay
 
 
-def protected_products(server: "Host", infos: list[ProductInfo] | None = None) -> dict[str, str]:
+def protected_products(server: Host, infos: list[ProductInfo] | None = None) -> dict[str, str]:
     """The names of the products the retention rule must never remove, each with why."""
     root = server.products.root
     infos = list_products(root) if infos is None else infos
@@ -194,7 +195,7 @@ def _route_names(directory: Path) -> list[str]:
         return ["*"]  # unreadable: keep every route product rather than guess
 
 
-def _hop_entries(server: "Host") -> list[Any]:
+def _hop_entries(server: Host) -> list[Any]:
     """The hops the hopping module holds in memory (read by name: the core imports no capability)."""
     if "hopping" not in server.registry.modules:
         return []
@@ -246,7 +247,7 @@ def choose(settings: StorageSettings, infos: list[ProductInfo], protected: dict[
 _prune_lock = threading.Lock()
 
 
-def prune(server: "Host", why: str, dry_run: bool = False) -> PruneReport:
+def prune(server: Host, why: str, dry_run: bool = False) -> PruneReport:
     """Apply the rule now; log what was (or would be) removed."""
     settings: StorageSettings = server.settings.storage
     with _prune_lock:

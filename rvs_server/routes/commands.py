@@ -139,7 +139,7 @@ class DriveConfig(CommandConfig):
     turn: float | None = Field(None, ge=-180, le=180, description="turn on the spot, degrees counter-clockwise")
 
     @model_validator(mode="after")
-    def _one_action(self) -> "DriveConfig":
+    def _one_action(self) -> DriveConfig:
         given = [name for name in ("forward", "backward", "turn") if getattr(self, name) is not None]
         if len(given) != 1:
             raise ValueError(f"give exactly one of --forward M, --backward M, --turn DEG (got "
@@ -322,7 +322,8 @@ class FollowRun:
 
         def progress(done: int, count: int, message: str) -> None:
             percent = 100.0 * (number + done / max(count, 1)) / total
-            self.ctx.progress(min(99.0, percent), f"{segment.route}{' (reverse)' if segment.reverse else ''}: {message}")
+            self.ctx.progress(min(99.0, percent),
+                              f"{segment.route}{' (reverse)' if segment.reverse else ''}: {message}")
 
         return RouteFollower(legs, self.matcher, self.rover, self.params, progress).run()
 
@@ -331,10 +332,11 @@ class FollowRun:
         success = all(r.success for r in reports)
         looks = self.rover.orient_looks
         document = {"matcher": self.matcher_name, "success": success, "images": self.rover.images,
-                    "orient_looks": len(looks), "orient_refused": [f"{look['failed']}: {look['sentence']}" for look in looks if look["failed"]],
+                    "orient_looks": len(looks),
+                    "orient_refused": [f"{look['failed']}: {look['sentence']}" for look in looks if look["failed"]],
                     "segments": [{**asdict(s), "reverse": s.reverse, "success": r.success, "reason": r.reason,
                                   "last_matched": r.last_matched, "legs": [asdict(leg) for leg in r.legs]}
-                                 for s, r in zip(segments, reports)]}
+                                 for s, r in zip(segments, reports, strict=True)]}
         product.write_json("follow.json", document, "per segment and leg: matched, similarity, approach steps, "
                            "heading corrections, metres travelled, recovery")
         if ctx.devices.simulated:
@@ -370,7 +372,7 @@ def route_connect(ctx: JobContext, cfg: ConnectConfig) -> dict[str, Any]:
     matcher = store.matcher(matcher_name)
     routes = [r.name for r in store.list_routes() if r.state == "finished"
               and "reversed_from" not in r.metadata]
-    existing = {(l.route_a, l.index_a, l.route_b, l.index_b) for l in store.links()}
+    existing = {(k.route_a, k.index_a, k.route_b, k.index_b) for k in store.links()}
     places = {name: place_descriptors(store, name, matcher_name) for name in routes}
     added, pairs = [], [(a, b) for i, a in enumerate(routes) for b in routes[i + 1:]]
     for number, (a, b) in enumerate(pairs):
@@ -398,7 +400,7 @@ def linked_places(matcher: Any, a: list[Any], b: list[Any], window: int) -> list
             if result.same_place:
                 score[i, j] = result.similarity
     links = []
-    for i, j in zip(*np.nonzero(score)):
+    for i, j in zip(*np.nonzero(score), strict=True):
         around = score[max(0, i - window):i + window + 1, max(0, j - window):j + window + 1]
         if score[i, j] >= around.max():
             links.append((int(i), int(j), float(score[i, j])))
@@ -414,10 +416,10 @@ def route_list(call: Call, cfg: CommandConfig) -> dict[str, Any]:
     links = store.links()
     reply: dict[str, Any] = {"count": len(routes)}
     for r in routes:
-        count = sum(1 for l in links if r.name in (l.route_a, l.route_b))
+        count = sum(1 for k in links if r.name in (k.route_a, k.route_b))
         reply[f"route.{r.name}"] = (f"{r.state} legs={r.triplets} length={r.length_m:.2f}m "
                                     f"bytes={r.image_bytes + r.descriptor_bytes} links={count}")
-    reply["links"] = " ".join(f"{l.route_a}:{l.index_a}={l.route_b}:{l.index_b}" for l in links)
+    reply["links"] = " ".join(f"{k.route_a}:{k.index_a}={k.route_b}:{k.index_b}" for k in links)
     return reply
 
 
@@ -465,7 +467,7 @@ def route_go(ctx: JobContext, cfg: GoConfig) -> dict[str, Any]:
                                                               "reason": "lost_at_start"})
     routes = [r.name for r in store.list_routes() if r.state == "finished" and "reversed_from" not in r.metadata]
     legs = [NetworkLeg(r, t.index, t.action.kind, t.action.value) for r in routes for t in store.triplets(r)]
-    links = [NetworkLink((l.route_a, l.index_a), (l.route_b, l.index_b)) for l in store.links()]
+    links = [NetworkLink((k.route_a, k.index_a), (k.route_b, k.index_b)) for k in store.links()]
     way = shortest_way(legs, links, start, goal, ctx.settings.turn_cost_m, ctx.settings.link_cost_m)
     if way is None:
         raise BadRequest(f"route-go: no way from {start[0]}:{start[1]} to {cfg.to} through the route network "

@@ -33,11 +33,12 @@ from __future__ import annotations
 import json
 import sqlite3
 import threading
+from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
-from typing import Iterator, Literal, Mapping, Sequence
+from typing import Literal
 
 import cv2
 import numpy as np
@@ -146,7 +147,7 @@ class Action:
         if self.kind != "turn" and self.value < 0:
             raise ValueError(f"{self.kind} distance must be >= 0 m, got {self.value!r}")
 
-    def reversed(self) -> "Action":
+    def reversed(self) -> Action:
         """The action that undoes this one with the camera still facing the same way (sec. 3.2)."""
         if self.kind == "turn":
             return Action("turn", -self.value)
@@ -281,7 +282,7 @@ class RouteStore:
 
     # -- lifetime ------------------------------------------------------------------------------
     @classmethod
-    def open(cls, directory: str | Path, config: RouteStoreConfig | None = None) -> "RouteStore":
+    def open(cls, directory: str | Path, config: RouteStoreConfig | None = None) -> RouteStore:
         return cls(directory, config)
 
     def close(self) -> None:
@@ -290,7 +291,7 @@ class RouteStore:
                 self._conn.close()
                 self._conn = None
 
-    def __enter__(self) -> "RouteStore":
+    def __enter__(self) -> RouteStore:
         return self
 
     def __exit__(self, *exc) -> None:
@@ -563,7 +564,7 @@ class RouteStore:
             raise RouteStoreError(f"image {image} is not an image of route {route!r}")
         return int(image)
 
-    def _prepare_image(self, image: np.ndarray, matchers: Sequence[str], pose=None, metadata=None) -> "_PreparedImage":
+    def _prepare_image(self, image: np.ndarray, matchers: Sequence[str], pose=None, metadata=None) -> _PreparedImage:
         """Everything slow about storing an image (describing, encoding), done before writing."""
         grey = grey_image(image)
         if pose is not None:
@@ -587,7 +588,7 @@ class RouteStore:
             raise RuntimeError(f"OpenCV could not encode a {grey.shape} image as {c.image_format}")
         return data.tobytes(), grey.shape
 
-    def _insert_image(self, db: sqlite3.Connection, route_id: int, image: "_PreparedImage") -> int:
+    def _insert_image(self, db: sqlite3.Connection, route_id: int, image: _PreparedImage) -> int:
         x, y, heading = image.pose or (None, None, None)
         cursor = db.execute(
             "INSERT INTO images (route_id, encoding, width, height, source_width, source_height, data, pose_x, "
@@ -681,4 +682,4 @@ def _select_in(db: sqlite3.Connection, query: str, params: tuple, ids: Sequence[
 
 
 def _now() -> str:
-    return datetime.now(timezone.utc).isoformat(timespec="milliseconds")
+    return datetime.now(UTC).isoformat(timespec="milliseconds")

@@ -13,8 +13,16 @@ from rvs_server.config import CommandConfig, describe_allowed, describe_default,
 from rvs_server.dispatch import Call, Mode, Module, Request
 from rvs_server.files import atomic_path
 from rvs_server.jobs import UnreadableRecoverySet
-from rvs_server.protocol import (EVENT_TOPICS, BadRequest, DeviceError, RvsError, Timeout, Unauthorized, WrongMode,
-                                 parse_line)
+from rvs_server.protocol import (
+    EVENT_TOPICS,
+    BadRequest,
+    DeviceError,
+    RvsError,
+    Timeout,
+    Unauthorized,
+    WrongMode,
+    parse_line,
+)
 
 if TYPE_CHECKING:
     from rvs_server.host import Host

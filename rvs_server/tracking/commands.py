@@ -9,8 +9,8 @@ from typing import TYPE_CHECKING, Any
 from pydantic import Field
 
 from rvs_server.config import CommandConfig, Range, SafeName
-from rvs_server.dispatch import Call, Module
 from rvs_server.devices.frame_points import SENSOR_DEVICE
+from rvs_server.dispatch import Call, Module
 from rvs_server.protocol import BadRequest, Sleeping, WrongMode
 
 from .activity import Target, TrackActivity
@@ -43,7 +43,7 @@ class DetectConfig(CommandConfig):
     output: SafeName | None = Field(None, description="product name; default track3d-detect-TIME")
 
 
-def _validate_detect(server: "Host", cfg: DetectConfig) -> None:
+def _validate_detect(server: Host, cfg: DetectConfig) -> None:
     sensor = cfg.sensor or server.settings_of("tracking").sensor
     server.devices[SENSOR_DEVICE[sensor]].require_healthy()
     if cfg.pan is not None:
@@ -53,7 +53,7 @@ def _validate_detect(server: "Host", cfg: DetectConfig) -> None:
 
 
 @module.job("track3d-detect", DetectConfig, devices=("ptu",), validate=_validate_detect)
-def track3d_detect(ctx: "JobContext", cfg: DetectConfig) -> dict[str, Any]:
+def track3d_detect(ctx: JobContext, cfg: DetectConfig) -> dict[str, Any]:
     """Search for a target (possibly an astronaut): sweep the PTU, find what stands on the ground, judge its shape."""
     settings: TrackingSettings = ctx.settings
     sensor = cfg.sensor or settings.sensor
@@ -90,7 +90,7 @@ class StartConfig(CommandConfig):
     output: SafeName | None = Field(None, description="product name; default track3d-start-TIME")
 
 
-def _validate_start(server: "Host", cfg: StartConfig) -> None:
+def _validate_start(server: Host, cfg: StartConfig) -> None:
     if server.stopping:
         raise WrongMode("track3d-start: the server is shutting down")
     if server.dispatcher.sleep_until is not None:

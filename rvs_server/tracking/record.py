@@ -5,8 +5,9 @@ from __future__ import annotations
 import csv
 import io
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any, Sequence
+from typing import Any
 
 import cv2
 import numpy as np
@@ -200,7 +201,7 @@ def write_track(product: Any, records: list[TrackRecord], points: np.ndarray, se
         canvas = Canvas(np.full((*spec.shape, 3), 40, dtype=np.uint8), spec, 640)
     if len(truth) > 1:
         canvas.line(truth, TRUTH, 2)
-    for a, b in zip(placed, placed[1:]):
+    for a, b in zip(placed[:-1], placed[1:], strict=True):
         colour = PERSON if b.state == "tracking" and b.seen else ((255, 200, 0) if b.state == "tracking" else OTHER)
         cv2.line(canvas.image, canvas.pixel((a.x, a.y)), canvas.pixel((b.x, b.y)), colour, 2, cv2.LINE_AA)
     cv2.circle(canvas.image, canvas.pixel(sensor_xy), 6, ROVER, -1)

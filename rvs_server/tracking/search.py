@@ -50,7 +50,7 @@ def search_pans(pan_range: tuple[float, float], step: float) -> list[float]:
     return [float(p) for p in np.linspace(low, high, count)] if count > 1 else [(low + high) / 2]
 
 
-def sweep(ctx: "JobContext", sight: Sight, settings: TrackingSettings, pan_range: tuple[float, float]) -> Search:
+def sweep(ctx: JobContext, sight: Sight, settings: TrackingSettings, pan_range: tuple[float, float]) -> Search:
     sensor = sight.sensor
     devices = ctx.devices
     ptu = devices.ptu.require()

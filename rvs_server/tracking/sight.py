@@ -42,7 +42,7 @@ class Seen:
 class Sight:
     """One tracking sensor on the PTU, for the search and the tracker."""
 
-    def __init__(self, server: "Host", settings: TrackingSettings, sensor: str):
+    def __init__(self, server: Host, settings: TrackingSettings, sensor: str):
         self.server, self.settings, self.sensor = server, settings, sensor
         self.frames = FramePoints(server, FrameSettings(
             sensor, settings.max_range_m, settings.stereo_resolution, settings.stereo_disparities,
@@ -52,7 +52,7 @@ class Sight:
         self.mount = calibration.mounts["tof" if sensor == "tof" else "left"]
         self.half_fov_deg = self._half_fov(server, calibration)
 
-    def _half_fov(self, server: "Host", calibration: Any) -> tuple[float, float]:
+    def _half_fov(self, server: Host, calibration: Any) -> tuple[float, float]:
         if self.sensor == "tof":
             k = calibration.tof_intrinsics
         else:
@@ -70,7 +70,7 @@ class Sight:
         d = local - np.asarray(self.mount.ptu_position, dtype=float)
         return -math.degrees(math.atan2(d[1], d[0])), math.degrees(math.atan2(d[2], math.hypot(d[0], d[1])))
 
-    def cut_by_view(self, seen: "Seen", points: np.ndarray, margin_deg: float = 1.5) -> bool:
+    def cut_by_view(self, seen: Seen, points: np.ndarray, margin_deg: float = 1.5) -> bool:
         """Whether a cluster (N, 3 world) reaches within `margin_deg` of the frame's left or right edge:
         the view cut it, and its shape there is not its own."""
         world_to_rover = np.linalg.inv(seen.pose.to_world())
@@ -79,7 +79,7 @@ class Sight:
         off = np.abs((azimuth - seen.pan_deg + 180.0) % 360.0 - 180.0)
         return bool(off.max(initial=0.0) >= self.half_fov_deg[0] - margin_deg)
 
-    def sees_top_of(self, seen: "Seen", top: np.ndarray, margin_deg: float = 2.0) -> bool:
+    def sees_top_of(self, seen: Seen, top: np.ndarray, margin_deg: float = 2.0) -> bool:
         """Whether a world point (3,) lies inside the frame's vertical view by `margin_deg`: then a
         cluster whose highest point it is was not cut by the top of the image."""
         elevation = math.degrees(math.atan2(top[2] - seen.sensor_z, math.hypot(*(top[:2] - seen.sensor_xy))))

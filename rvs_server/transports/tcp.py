@@ -9,11 +9,24 @@ from __future__ import annotations
 import asyncio
 import logging
 import socket
-from typing import TYPE_CHECKING, Any, Mapping
+from collections.abc import Mapping
+from typing import TYPE_CHECKING, Any
 
 from ..dispatch import Request, Session
-from ..protocol import (LINE_END, MAX_LINE_BYTES, BadRequest, RvsError, format_err, format_error, format_event,
-                        format_ok, format_progress, is_ignored, parse_line, split_tag)
+from ..protocol import (
+    LINE_END,
+    MAX_LINE_BYTES,
+    BadRequest,
+    RvsError,
+    format_err,
+    format_error,
+    format_event,
+    format_ok,
+    format_progress,
+    is_ignored,
+    parse_line,
+    split_tag,
+)
 
 if TYPE_CHECKING:
     from rvs_server.host import Host
@@ -87,7 +100,7 @@ class TelnetFilter:
 class LineSink:
     """Replies to one command line on one connection, framed with its tag."""
 
-    def __init__(self, connection: "TextConnection", tag: str):
+    def __init__(self, connection: TextConnection, tag: str):
         self.connection = connection
         self.tag = tag
 

@@ -10,7 +10,8 @@ from __future__ import annotations
 
 import json
 import logging
-from typing import TYPE_CHECKING, Any, Mapping
+from collections.abc import Mapping
+from typing import TYPE_CHECKING, Any
 
 import zmq
 import zmq.asyncio
@@ -39,7 +40,7 @@ def _json(value: Any) -> Any:
 
 
 class ZmqSink:
-    def __init__(self, transport: "ZmqTransport", envelope: list[bytes], request_id: str | None):
+    def __init__(self, transport: ZmqTransport, envelope: list[bytes], request_id: str | None):
         self.transport = transport
         self.envelope = envelope
         self.request_id = request_id

@@ -12,7 +12,8 @@ from __future__ import annotations
 import asyncio
 import collections
 import json
-from typing import Any, Mapping
+from collections.abc import Mapping
+from typing import Any
 
 QUEUE_LIMIT = 256          # events waiting for one browser
 MAX_CLIENTS = 64           # event streams open at once; more are refused (503)

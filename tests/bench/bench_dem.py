@@ -27,8 +27,8 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-from toolbox.mapping import dem as D  # noqa: E402
 from toolbox.grid import GridSpec  # noqa: E402
+from toolbox.mapping import dem as D  # noqa: E402
 
 SPEC = GridSpec(-10.0, -10.0, 0.02, 1000, 1000)
 
@@ -112,8 +112,8 @@ def main() -> None:
           f"np.maximum.at   {reference_time / np.median(ours):7.1f}x faster than the loop")
     print(f"  before (numpy: index, maximum.at, bincount) {np.median(before) * 1000:6.1f} ms   {before_ratio:7.2f}x "
           f"the bare np.maximum.at")
-    print(f"    ratios per round, ours: {' '.join(f'{o / b:.2f}' for o, b in zip(ours, bare))}; "
-          f"before: {' '.join(f'{o / b:.2f}' for o, b in zip(before, bare))}")
+    print(f"    ratios per round, ours: {' '.join(f'{o / b:.2f}' for o, b in zip(ours, bare, strict=True))}; "
+          f"before: {' '.join(f'{o / b:.2f}' for o, b in zip(before, bare, strict=True))}")
     print(f"  sort + reduceat (not taken)      {sort_time * 1000:9.1f} ms   {sort_time / np.median(ours):.1f}x ours")
 
     # The rest of the chain on this grid: holes of every size.

@@ -171,7 +171,8 @@ def main() -> None:
           f"   float64 grid {median('box64') * 1000:7.1f} ms")
     print(f"  hazard_maps (all)     ours {median('maps') * 1000:7.1f} ms   {ratio('maps', 'box32'):5.1f}x the "
           f"reference on float32 ({ratio('maps', 'box64'):4.1f}x on float64; issue 26: within 10x)")
-    print(f"    ratios per round: {' '.join(f'{m / b:.1f}' for m, b in zip(times['maps'], times['box32']))}")
+    ratios = ' '.join(f'{m / b:.1f}' for m, b in zip(times['maps'], times['box32'], strict=True))
+    print(f"    ratios per round: {ratios}")
     print(f"  before (until issue 26) {median('before') * 1000:7.1f} ms   {ratio('before', 'box32'):5.1f}x the "
           f"reference on float32 ({ratio('before', 'box64'):4.1f}x on float64); "
           f"ours {median('before') / median('maps'):.1f}x faster")
@@ -182,7 +183,7 @@ def main() -> None:
     print(f"  step               per-cell {ref_step_full:8.1f} s (scaled)   ours {median('step') * 1000:7.1f} ms"
           f"   {ref_step_full / median('step'):8.0f}x faster")
     codes, counts = np.unique(maps.code, return_counts=True)
-    print("  codes: " + ", ".join(f"{c}: {n}" for c, n in zip(codes.tolist(), counts.tolist())))
+    print("  codes: " + ", ".join(f"{c}: {n}" for c, n in zip(codes.tolist(), counts.tolist(), strict=True)))
 
 
 if __name__ == "__main__":

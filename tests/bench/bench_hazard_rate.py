@@ -46,7 +46,6 @@ import numpy as np  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[2]
 sys.path[:0] = [str(REPO), str(REPO / "tests")]
-from conftest import ServerProcess  # noqa: E402
 from drivers.avt import CameraSettings  # noqa: E402
 from drivers.avt_emulator import emulated_stereo_pair  # noqa: E402
 from drivers.sim.clock import SimClock  # noqa: E402
@@ -63,6 +62,8 @@ from rvs_server.mapping.commands import MappingSettings  # noqa: E402
 from toolbox.geometry import RoverPose  # noqa: E402
 from toolbox.mapping import dem as dem_tools  # noqa: E402
 from toolbox.mapping.corridor import corridor_view  # noqa: E402
+
+from conftest import ServerProcess  # noqa: E402
 
 CONFIGS = REPO / "configs"
 SIZE_M = (20.0, 20.0)
@@ -88,7 +89,7 @@ class Bench:
         self.clock = SimClock(1e4)            # the emulators' frame times pass in microseconds of wall time
         self.testbed = SimulatedTestbed(self.clock, world_config())
         started = time.perf_counter()
-        self.testbed.world
+        _ = self.testbed.world
         self.build_s = time.perf_counter() - started
         self.mapping = load_model(CONFIGS / "mapping.toml", MappingSettings)
         self.hazard = load_model(CONFIGS / "hazard.toml", HazardSettings)

@@ -19,6 +19,7 @@ import argparse
 import math
 import sys
 import time
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -27,9 +28,14 @@ from scipy.spatial.transform import Rotation
 REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO))
 from toolbox.hopping.ballistics import hop_range, landing_error_ellipse  # noqa: E402
-from toolbox.hopping.icp import (align_with_overlap_elimination, apply_transform,  # noqa: E402
-                                            estimate_normals, icp_point_to_plane, icp_point_to_point,
-                                            transform_change)
+from toolbox.hopping.icp import (  # noqa: E402
+    align_with_overlap_elimination,
+    apply_transform,
+    estimate_normals,
+    icp_point_to_plane,
+    icp_point_to_point,
+    transform_change,
+)
 from toolbox.hopping.landing import LandingParams, plan_landing  # noqa: E402
 from toolbox.hopping.parabola import ballistic_design, fit_flight, fit_flight_paper  # noqa: E402
 
@@ -85,9 +91,9 @@ def bench_flight(hops: int, seed: int) -> None:
             sfm, t, scale, down, good = synthetic_hop(rng, **settings)
             prior = Rotation.from_rotvec(math.radians(0.5) * np.cross(down, [1.0, 0, 0])
                                          / np.linalg.norm(np.cross(down, [1.0, 0, 0]))).apply(down)
-            for key, fit in (("paper", lambda: fit_flight_paper(sfm, t)), ("timed", lambda: fit_flight(sfm, t)),
-                             ("timed + prior", lambda: fit_flight(sfm, t, gravity_prior=prior,
-                                                                   prior_sigma_rad=math.radians(0.5)))):
+            for key, fit in (("paper", partial(fit_flight_paper, sfm, t)), ("timed", partial(fit_flight, sfm, t)),
+                             ("timed + prior", partial(fit_flight, sfm, t, gravity_prior=prior,
+                                                       prior_sigma_rad=math.radians(0.5)))):
                 start = time.perf_counter()
                 try:
                     result = fit()
@@ -145,15 +151,15 @@ def bench_icp(seeds: int) -> None:
         moved, moved_yaw = apply_transform(error, current), apply_transform(yaw_error, current)
         normals = estimate_normals(previous, 0.15)
         runs = {
-            "point-to-point": (error, lambda: icp_point_to_point(moved, previous, np.eye(4), 1.0)[0]),
-            "point-to-plane": (error, lambda: icp_point_to_plane(moved, previous, normals, np.eye(4),
-                                                                 1.0, None)[0]),
-            "p2plane + Tukey": (error, lambda: icp_point_to_plane(moved, previous, normals, np.eye(4),
-                                                                  0.6, 0.1)[0]),
-            "crop loop 6 DoF": (error, lambda: align_with_overlap_elimination(moved, previous,
-                                                                              voxel=0.05).transform),
-            "crop loop yaw": (yaw_error, lambda: align_with_overlap_elimination(moved_yaw, previous, voxel=0.05,
-                                                                                dof="yaw").transform),
+            "point-to-point": (error, lambda a=moved, b=previous: icp_point_to_point(a, b, np.eye(4), 1.0)[0]),
+            "point-to-plane": (error, lambda a=moved, b=previous, n=normals: icp_point_to_plane(
+                a, b, n, np.eye(4), 1.0, None)[0]),
+            "p2plane + Tukey": (error, lambda a=moved, b=previous, n=normals: icp_point_to_plane(
+                a, b, n, np.eye(4), 0.6, 0.1)[0]),
+            "crop loop 6 DoF": (error, lambda a=moved, b=previous: align_with_overlap_elimination(
+                a, b, voxel=0.05).transform),
+            "crop loop yaw": (yaw_error, lambda a=moved_yaw, b=previous: align_with_overlap_elimination(
+                a, b, voxel=0.05, dof="yaw").transform),
         }
         for name, (truth, run) in runs.items():
             start = time.perf_counter()

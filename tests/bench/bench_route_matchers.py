@@ -36,12 +36,11 @@ sys.path.insert(0, str(REPO))
 from drivers.avt_sensor import sensor_image  # noqa: E402
 from drivers.sim.config import Sun, WorldConfig  # noqa: E402
 from drivers.sim.render import render  # noqa: E402
-from toolbox.camera import Intrinsics
 from drivers.sim.rover import Rover  # noqa: E402
 from drivers.sim.world import World  # noqa: E402
 from rvs_server.routes.store import Action, RouteStore, RouteStoreConfig  # noqa: E402
-from toolbox.routes.match import (ContourConfig, ContourMatcher, FeatureMatcher,  # noqa: E402
-                                             heading_offset, rank_route)
+from toolbox.camera import Intrinsics  # noqa: E402
+from toolbox.routes.match import ContourConfig, ContourMatcher, FeatureMatcher, heading_offset, rank_route  # noqa: E402
 
 CAMERA = Intrinsics.from_fov(640, 480, math.radians(60.0))
 TILT_DEG = -20.0
@@ -156,7 +155,7 @@ def describe_all(matcher, scenes) -> list[tuple[list, list]]:
 
 def evaluate(matcher, scenes, described) -> dict[str, Counts]:
     counts = {"unchanged": Counts(), "changed": Counts()}
-    for (_, pairs), (base, moved) in zip(scenes, described):
+    for (_, pairs), (base, moved) in zip(scenes, described, strict=True):
         for stored, live, truth in pairs:
             counts["unchanged"].add(matcher.match(base[live], base[stored]).same_place, truth)
             counts["changed"].add(matcher.match(moved[live], base[stored]).same_place, truth)
@@ -173,7 +172,7 @@ def tuned_contour(scenes) -> tuple[ContourConfig, dict[str, Counts]]:
         matcher = ContourMatcher(config)
         described = describe_all(matcher, scenes)
         scores = {"unchanged": [], "changed": []}
-        for (_, pairs), (base, moved) in zip(scenes, described):
+        for (_, pairs), (base, moved) in zip(scenes, described, strict=True):
             for stored, live, truth in pairs:
                 scores["unchanged"].append((matcher.similar_points(base[live], base[stored]), truth))
                 scores["changed"].append((matcher.similar_points(moved[live], base[stored]), truth))

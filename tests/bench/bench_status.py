@@ -33,6 +33,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO / "tests"))
 from conftest import ServerProcess, write_configs  # noqa: E402
+
 sys.path.insert(0, str(REPO / "tests" / "web"))
 from web_client import free_port  # noqa: E402
 
@@ -131,7 +132,8 @@ async def _pages(web: str, pages: int, status_every: float, products_every: floa
     async with aiohttp.ClientSession(connector=aiohttp.TCPConnector(limit=0)) as session:
         tasks = [asyncio.create_task(stream()) for _ in range(pages)]
         for i in range(pages):   # spread over the period, as pages opened at different times would be
-            tasks.append(asyncio.create_task(poll(session, "/api/status", status_every, "status", status_every * i / pages)))
+            tasks.append(asyncio.create_task(poll(session, "/api/status", status_every, "status",
+                                                  status_every * i / pages)))
             tasks.append(asyncio.create_task(poll(session, "/api/products?limit=12", products_every, "products",
                                                   products_every * i / pages)))
         await asyncio.sleep(0.5)
@@ -142,7 +144,8 @@ async def _pages(web: str, pages: int, status_every: float, products_every: floa
             task.cancel()
         await asyncio.gather(*tasks, return_exceptions=True)
     lat = np.array(latencies) if latencies else np.array([np.nan])
-    out.put({**counts, "page_status_p50": float(np.percentile(lat, 50)), "page_status_p99": float(np.percentile(lat, 99))})
+    out.put({**counts, "page_status_p50": float(np.percentile(lat, 50)),
+             "page_status_p99": float(np.percentile(lat, 99))})
 
 
 def _pages_process(*args) -> None:
@@ -158,7 +161,7 @@ class Pages:
         self.proc = context.Process(target=_pages_process, args=(web, args.pages, args.status_every,
                                     args.products_every, self.stop_flag, self.ready, self.out), daemon=True)
 
-    def __enter__(self) -> "Pages":
+    def __enter__(self) -> Pages:
         self.proc.start()
         if not self.ready.wait(30):
             raise RuntimeError("the pages did not start")
@@ -207,7 +210,8 @@ def pages_comparison(rvs: ServerProcess, args: argparse.Namespace) -> list[str]:
     print = lines.append  # noqa: A001 (the figures are printed after the echo comparison)
 
     def row(name: str, ours: float, ref: float, unit: str) -> None:
-        print(f"{name:<22} {args.pages} pages {ours:10.3f} {unit:<6} none {ref:10.3f} {unit:<6} ratio {ours / ref:6.2f}")
+        print(f"{name:<22} {args.pages} pages {ours:10.3f} {unit:<6} none {ref:10.3f} {unit:<6} "
+              f"ratio {ours / ref:6.2f}")
 
     print(f"\nrvs with {args.pages} web pages open beside without ({args.repeats} alternations"
           f"{', a move-ptu job running throughout' if args.job else ', server idle'}): each page holds /events open "
@@ -220,7 +224,8 @@ def pages_comparison(rvs: ServerProcess, args: argparse.Namespace) -> list[str]:
     print(f"the pages over {seconds:.1f} s: {total['status'] / seconds:.1f} /api/status and "
           f"{total['products'] / seconds:.1f} /api/products per second, {total['events'] / seconds:.1f} events per "
           f"second received in all, {total['errors']} errors; their /api/status p50 "
-          f"{np.mean([r['page_status_p50'] for r in reports]):.2f} ms, p99 {np.max([r['page_status_p99'] for r in reports]):.2f} ms")
+          f"{np.mean([r['page_status_p50'] for r in reports]):.2f} ms, "
+          f"p99 {np.max([r['page_status_p99'] for r in reports]):.2f} ms")
     return lines
 
 

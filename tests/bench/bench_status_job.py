@@ -63,7 +63,8 @@ def measure(worker: bool, plans: int, idle_s: float, interval_s: float) -> dict[
         for _ in range(plans):
             done = threading.Event()
             results: list[list[float]] = []
-            pinger = threading.Thread(target=lambda: results.append(round_trips(server, done, interval_s)))
+            pinger = threading.Thread(target=lambda results=results, done=done: results.append(
+                round_trips(server, done, interval_s)))
             with server.connect(timeout=600) as c:
                 pinger.start()
                 reply = c.command("hop-plan", timeout=600)

@@ -17,9 +17,9 @@ import numpy as np
 
 from drivers.sim.config import WorldConfig
 from drivers.sim.render import camera_rays, render
-from toolbox.camera import Intrinsics
 from drivers.sim.rover import Rover
 from drivers.sim.world import World
+from toolbox.camera import Intrinsics
 
 SR4000 = Intrinsics(width=176, height=144, fx=262.92, fy=262.92, cx=88.0, cy=69.0, k1=-0.826, k2=0.656)
 HD = Intrinsics.from_fov(1920, 1080, math.radians(60.0))

@@ -34,9 +34,10 @@ REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO / "tests"))
 sys.path.insert(0, str(REPO))
 
-from conftest import ServerProcess, pairs, write_configs  # noqa: E402
 from drivers.sim.config import WorldConfig  # noqa: E402
 from drivers.sim.world import World  # noqa: E402
+
+from conftest import ServerProcess, pairs, write_configs  # noqa: E402
 
 LANE_HALF_WIDTH = 0.50      # 0.25 half body + 0.10 guard margin + 0.15 for drive error
 CLEAR_BELOW = 0.08          # a lane is clean when no rock on it is taller than this
@@ -122,7 +123,7 @@ class Scene:
         py = y + distance * math.sin(h) + offset * math.cos(h)
         if person:
             reply = self.command(f"astronaut --at {px:.3f},{py:.3f}")
-            return "person", f"astronaut --remove", distance, 1.8
+            return "person", "astronaut --remove", distance, 1.8
         height = float(self.rng.uniform(0.12, 0.30))
         reply = pairs(self.command(f"sim-rock --at {px:.3f},{py:.3f} --height {height:.3f}"))
         return "rock", f"sim-rock --remove {reply['rock']}", distance, height
@@ -258,7 +259,8 @@ def main() -> None:
           f"{sum(e['how'] == 'route-follow' for e in log)}; rocks {sum(e['kind'] == 'rock' for e in log)} of "
           f"12-30 cm, persons {sum(e['kind'] == 'person' for e in log)})")
     print(f"stopped short of the obstacle before contact: {len(short)}/{encounters}; encounters with a contact: "
-          f"{touched}; other outcomes: {[(e['seed'], e['kind'], e['reply'][-90:], e.get('clearance')) for e in log if e not in short]}")
+          f"{touched}; other outcomes: "
+          f"{[(e['seed'], e['kind'], e['reply'][-90:], e.get('clearance')) for e in log if e not in short]}")
     print(f"contacts over the campaign (truth): {contacts}")
     if margins:
         m = np.array(margins)

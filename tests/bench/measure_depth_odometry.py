@@ -49,10 +49,11 @@ import open3d as o3d
 
 REPO = Path(__file__).resolve().parents[2]
 sys.path[:0] = [str(REPO), str(REPO / "tests" / "toolbox")]
-from test_toolbox_depth_odometry import TofRig, dead_reckoning, step_pair
-from drivers.sim.world import World, WorldConfig
-from toolbox.odometry.depth import DepthFrame, DepthOdometryParams, depth_motion, motion_error, pinhole_depth
-from toolbox.odometry.estimate import OdometryFailure
+from test_toolbox_depth_odometry import TofRig, dead_reckoning, step_pair  # noqa: E402
+
+from drivers.sim.world import World, WorldConfig  # noqa: E402
+from toolbox.odometry.depth import DepthFrame, DepthOdometryParams, depth_motion, motion_error, pinhole_depth  # noqa: E402
+from toolbox.odometry.estimate import OdometryFailure  # noqa: E402
 
 STEPS_M, TURNS_DEG = (0.5, 1.0, 1.5), (0.0, 5.0, 10.0)
 PARAMS = DepthOdometryParams()
@@ -104,8 +105,11 @@ def run_cv2(kind):
         scale = np.percentile(key.amplitude[key.valid], 99)
         settings = cv2.OdometrySettings()
         settings.setCameraMatrix(np.array([[key.fx, 0, key.cx], [0, key.fy, key.cy], [0, 0, 1]], np.float32))
-        settings.setMinDepth(PARAMS.min_range_m); settings.setMaxDepth(PARAMS.max_range_m)
-        settings.setMaxDepthDiff(0.07); settings.setMaxTranslation(1.0); settings.setMaxRotation(30.0)
+        settings.setMinDepth(PARAMS.min_range_m)
+        settings.setMaxDepth(PARAMS.max_range_m)
+        settings.setMaxDepthDiff(0.07)
+        settings.setMaxTranslation(1.0)
+        settings.setMaxRotation(30.0)
         odometry = cv2.Odometry(kind, settings, cv2.OdometryAlgoType_COMMON)
         def frame(f):
             depth, grey = pinhole_depth(f)

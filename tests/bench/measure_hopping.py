@@ -212,7 +212,8 @@ def singles(seed: int, out: Path, count: int, size: float, cover: float, sim_spe
                 toward = math.degrees(math.atan2(-hopper[1], -hopper[0])) if math.hypot(*hopper) > 2 else None
                 heading = toward + rng.uniform(-60, 60) if toward is not None else rng.uniform(-180, 180)
                 heading = (heading + 180) % 360 - 180
-                hop = f"hop --speed {speed_for(distance, elevation):.4f} --elevation {elevation:.2f} --heading {heading:.2f}"
+                hop = (f"hop --speed {speed_for(distance, elevation):.4f} --elevation {elevation:.2f} "
+                       f"--heading {heading:.2f}")
                 record = hop_and_plan(client, products, hop, "hop-plan")
                 record["commanded_m"] = distance
                 if "plan_error" in record:

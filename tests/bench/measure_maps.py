@@ -27,9 +27,10 @@ from scipy import ndimage
 REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO / "tests"))
 sys.path.insert(0, str(REPO))
+from rvs_server.products.rasters import read_geotiff  # noqa: E402
+
 import conftest  # noqa: E402
 from conftest import ServerProcess, pairs  # noqa: E402
-from rvs_server.products.rasters import read_geotiff  # noqa: E402
 
 REACH_M = {"tof": 4.5, "stereo": 4.5}  # the same disc for both, inside both sensors' range
 
@@ -99,9 +100,11 @@ def main() -> None:
             for sensor, reply in (("tof", tof), ("stereo", stereo)):
                 result = score(Path(reply["path"]), sensor)
                 rows[sensor].append(result)
-                print(f"seed {seed} {sensor:6s} rmse {result['rmse'] * 100:5.2f} cm  p95 {result['p95'] * 100:5.2f} cm  "
+                print(f"seed {seed} {sensor:6s} rmse {result['rmse'] * 100:5.2f} cm  "
+                      f"p95 {result['p95'] * 100:5.2f} cm  "
                       f"bias {result['bias'] * 100:+5.2f} cm  observed {result['observed']:.2f}  "
-                      f"recall {result['recall']:.2f} ({result['rocks']} rocks)  false hazard {result['false_hazard']:.3f}")
+                      f"recall {result['recall']:.2f} ({result['rocks']} rocks)  "
+                      f"false hazard {result['false_hazard']:.3f}")
             timings = json.loads((Path(tof["path"]) / "product.json").read_text())["timings_s"]
             print(f"seed {seed} dem-full-tof seconds: " + ", ".join(f"{k} {v:.2f}" for k, v in timings.items())
                   + f"; server peak memory {peak:.0f} MiB (world included)")

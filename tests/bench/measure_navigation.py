@@ -4,8 +4,8 @@ Each scene is a world of the given size whose rocks cover 15-20 % of the ground 
 fractional area, drawn per scene; the rock cover of Jezero crater). The rover starts at the centre,
 facing east; the goal is drawn 8-15 m away in a random direction, kept only if a path for the rover
 exists on the TRUE map (rocks taller than the step limit and ground steeper than the slope limit,
-grown by 0.4 m, at least navigate's own clearance) and the goal has room for the rover. For every scene and sensor a real
-server runs `navigate --to X,Y --sensor S`, and the run is scored from its product:
+grown by 0.4 m, at least navigate's own clearance) and the goal has room for the rover. For every scene and
+sensor a real server runs `navigate --to X,Y --sensor S`, and the run is scored from its product:
 
 - success: navigate answered OK and the rover truly stands within the tolerance (+0.1 m) of the goal;
 - collisions: runs in which the rover's footprint covered a true obstacle at any sample of its path
@@ -41,11 +41,12 @@ REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO / "tests"))
 sys.path.insert(0, str(REPO))
 from clients.run_log import RunLog, report  # noqa: E402
-from conftest import ServerProcess, pairs  # noqa: E402
 from drivers.sim.config import WorldConfig  # noqa: E402
 from drivers.sim.world import World  # noqa: E402
 from toolbox.grid import GridSpec  # noqa: E402
 from toolbox.planning import MapLayers, PlanningParams, plan_path  # noqa: E402
+
+from conftest import ServerProcess, pairs  # noqa: E402
 
 CLEARANCE_M = 0.4        # a way for the rover's radius 0.3 m plus 0.1 m: navigate plans with a 0.05 m margin,
                          # so a goal counts as reachable only with room to spare
@@ -170,7 +171,7 @@ def usable_seeds(first: int, count: int, size: float, jobs: int = 2,
         while len(seeds) < count:
             batch = list(range(seed, seed + count - len(seeds)))
             unknown = [s for s in batch if s not in answers]
-            answers.update(zip(unknown, pool.map(has_goal, unknown, [size] * len(unknown))))
+            answers.update(zip(unknown, pool.map(has_goal, unknown, [size] * len(unknown)), strict=True))
             for candidate in batch:
                 (seeds if answers[candidate] else boxed_in).append(candidate)
             seed = batch[-1] + 1
@@ -248,7 +249,8 @@ def main() -> None:
           f"boxed in at the start on the true map: {boxed_in}", flush=True)
     planned = [{"seed": seed, "sensor": sensor} for seed in seeds for sensor in args.sensors]
     tasks = log.todo(planned)
-    print(f"{len(planned) - len(tasks)} of {len(planned)} runs already in {args.results}; {len(tasks)} to go", flush=True)
+    print(f"{len(planned) - len(tasks)} of {len(planned)} runs already in {args.results}; {len(tasks)} to go",
+          flush=True)
     with ProcessPoolExecutor(max_workers=args.jobs, max_tasks_per_child=1) as pool:   # a fresh process per scene
         futures = {pool.submit(run, task["seed"], task["sensor"], args.size, args.out, args.sim_speed,
                                args.orient == "on"): task for task in tasks}
@@ -262,7 +264,8 @@ def main() -> None:
                 continue
             scores = {k: v for k, v in result.items() if k not in ("seed", "sensor", "seconds")}
             log.append(task, result["seconds"], **scores)
-            print(f"scene {task['seed']} {task['sensor']}: {'success' if result['success'] else 'FAILED ' + result['outcome']}, "
+            print(f"scene {task['seed']} {task['sensor']}: "
+                  f"{'success' if result['success'] else 'FAILED ' + result['outcome']}, "
                   f"{result['driven_m']:.1f} m driven for {result['optimal_m']:.1f} m optimal, contacts "
                   f"{result['contacts']}, localisation {100 * result['localisation_error_m']:.1f} cm "
                   f"(odometry {100 * result['odometry_error_m']:.1f} cm), {result['seconds']:.0f} s", flush=True)

@@ -43,12 +43,12 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO / "tests"))
 sys.path.insert(0, str(REPO))
-from conftest import ServerProcess, pairs  # noqa: E402
 from drivers.sim.config import WorldConfig  # noqa: E402
 from drivers.sim.world import World  # noqa: E402
 from toolbox.grid import GridSpec  # noqa: E402
-from toolbox.planning import (MapLayers, PlanningParams, cells_to_world, inflate_hazards,  # noqa: E402
-                                         plan_path, segment_is_clear)
+from toolbox.planning import MapLayers, PlanningParams, cells_to_world, inflate_hazards, plan_path, segment_is_clear  # noqa: E402
+
+from conftest import ServerProcess, pairs  # noqa: E402
 
 SIZE_M = 50.0
 LEG_M = 2.5
@@ -101,7 +101,7 @@ def lay_route(world: World, rng: np.random.Generator, start: tuple[float, float]
         start_heading = first if heading is None else math.radians(heading)
         actions: list[tuple[str, float]] = []
         at = start_heading
-        for p, q in zip(points[:-1], points[1:]):
+        for p, q in zip(points[:-1], points[1:], strict=True):
             bearing_pq = math.atan2(q[1] - p[1], q[0] - p[0])
             turn = math.degrees((bearing_pq - at + math.pi) % (2 * math.pi) - math.pi)
             if abs(turn) > 3.0:
@@ -200,7 +200,8 @@ def repeat(seed: int, out: Path, route: dict, matcher: str, sun_moved: bool, rev
     place = taught[-1] if reverse else taught[0]
     goal = taught[0] if reverse else taught[-1]
     rng = np.random.default_rng([seed, int(reverse), int(sun_moved), len(matcher)])
-    name = f"{matcher}-{'moved' if sun_moved else 'same'}-{'reverse' if reverse else 'forward'}{'-orient' if orient else ''}"
+    name = (f"{matcher}-{'moved' if sun_moved else 'same'}-{'reverse' if reverse else 'forward'}"
+            f"{'-orient' if orient else ''}")
     command = f"route-follow --name r {'--reverse ' if reverse else ''}--matcher {matcher} --output {name}"
     result = run_from(seed, out, name, near(place, rng), MOVED_SUN if sun_moved else SUN, [], command, goal, taught,
                       orient)
@@ -305,7 +306,8 @@ def report(results: list[dict]) -> str:
                     final = [r["final_m"] for r in rows]
                     deviation = [r["max_deviation_m"] for r in rows]
                     per_m = sum(r["images"] for r in rows) / sum(r["length_m"] for r in rows)
-                    looks = f"{sum(r.get('orient_looks', 0) for r in rows)} ({sum(r.get('orient_refused', 0) for r in rows)})"
+                    looks = (f"{sum(r.get('orient_looks', 0) for r in rows)} "
+                             f"({sum(r.get('orient_refused', 0) for r in rows)})")
                     lines.append(f"{matcher:9s} {sun:6s} {direction:9s} {'on ' if orient else 'off'}    "
                                  f"{sum(r['success'] for r in rows):2d}/{len(rows):<2d}"
                                  f"     {np.median(final):6.2f} {np.max(final):6.2f}          "

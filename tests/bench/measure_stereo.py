@@ -48,7 +48,7 @@ def measure(seed: int, resolution: str) -> tuple[float, float, float, float, flo
     k = pair.camera("left").intrinsics(resolution)
     started = time.perf_counter()
     view = render(world, left_pose, k)
-    view.intensity
+    _ = view.intensity
     render_s = time.perf_counter() - started
     pair.close()
     calib = StereoCalibration(intrinsics_of(k), intrinsics_of(k), relative_pose(left_pose, right_pose))

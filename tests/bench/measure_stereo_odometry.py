@@ -34,10 +34,9 @@ from drivers.sim.config import WorldConfig  # noqa: E402
 from drivers.sim.rover import Rover  # noqa: E402
 from drivers.sim.world import World  # noqa: E402
 from toolbox.camera import Intrinsics  # noqa: E402
-from toolbox.geometry import invert, relative_pose  # noqa: E402
+from toolbox.geometry import relative_pose  # noqa: E402
 from toolbox.odometry.estimate import OdometryFailure  # noqa: E402
-from toolbox.odometry.stereo import (StereoOdometryParams, StereoRig, stereo_keyframe,  # noqa: E402
-                                     stereo_motion)
+from toolbox.odometry.stereo import StereoOdometryParams, StereoRig, stereo_keyframe, stereo_motion  # noqa: E402
 
 STEPS_M = (0.5, 1.0, 1.5)
 TURNS_DEG = (0.0, 5.0, 10.0)
@@ -191,7 +190,8 @@ def main() -> None:
                   f"{np.median([r['inliers'] for r in of]):.0f} inliers, {np.median([r['ms'] for r in of]):.0f} ms")
     if good:
         print(f"all: median {np.median([r['pct'] for r in good]):.2f} %, "
-              f"{np.median([r['deg_per_m'] for r in good]):.4f} deg/m, ms median {np.median([r['ms'] for r in good]):.0f}"
+              f"{np.median([r['deg_per_m'] for r in good]):.4f} deg/m, "
+              f"ms median {np.median([r['ms'] for r in good]):.0f}"
               f" max {max(r['ms'] for r in good):.0f}")
     for label in KEYFRAME_POLICIES:
         of = [c for c in chains if c[0] == label]

@@ -55,7 +55,8 @@ def main() -> None:
         if runs_n:
             parts = [f"> {int(level * 100)} cm: {sum(1 for c in counts[level] if c)} runs, "
                      f"{sum(counts[level])} samples" for level in LEVELS]
-            print(f"{sensor} ({runs_n} runs; a sample is 5 cm of path or up to 10 degrees of turn): " + "; ".join(parts))
+            print(f"{sensor} ({runs_n} runs; a sample is 5 cm of path or up to 10 degrees of turn): "
+                  + "; ".join(parts))
 
 
 if __name__ == "__main__":

@@ -14,7 +14,8 @@ world's drive error on: 2 % of distance, 2 % + 0.5 deg of a turn, 0.3 deg/m head
 drives a 30 m traverse from (-13, -13) toward the far corner in steps of 0.5-1.5 m, each after a
 turn (steered to the corner, off course by N(0, 8 deg), round rocks taller than 8 cm and slopes over
 15 deg, as navigate with its 9 cm step limit would; a turn over --max-turn deg is made in parts, a look
-after each; 15 keeps consecutive views overlapping, 90 drives the turns a GNC would, unsplit); after every step `orient --sensor S` looks and its answer becomes the pose estimate. Scored
+after each; 15 keeps consecutive views overlapping, 90 drives the turns a GNC would, unsplit); after every
+step `orient --sensor S` looks and its answer becomes the pose estimate. Scored
 against the true pose in each orient product's truth/ (KITTI's odometry metrics on the looks):
 
 - relative error over 5 m and 10 m segments of true path: |translation error| / length (%) and
@@ -42,8 +43,9 @@ sys.path.insert(0, str(REPO / "tests"))
 sys.path.insert(0, str(REPO))
 
 from clients.run_log import RunLog, report  # noqa: E402
-from conftest import ServerProcess, pairs, write_configs  # noqa: E402
 from drivers.sim.motion import dead_reckon  # noqa: E402
+
+from conftest import ServerProcess, pairs, write_configs  # noqa: E402
 
 START = (-13.0, -13.0, 45.0)
 AIM = (13.0, 13.0)
@@ -85,21 +87,23 @@ def plan_step(world, rng, true_pose) -> tuple[float, float]:
     options = sorted((wanted + math.radians(d) for d in range(-120, 121, 5)),
                      key=lambda a: abs(wrap(a - wanted)) + 0.5 * abs(wrap(a - h)))
     heights = [lane_height(world, x, y, a, length) for a in options]
-    clear = [a for a, height in zip(options, heights) if height < TALL_ROCK_M]
+    clear = [a for a, height in zip(options, heights, strict=True) if height < TALL_ROCK_M]
     target = clear[0] if clear else options[int(np.argmin(heights))]
     return math.degrees(wrap(target - h)), length
 
 
 def run(seed: int, sensor: str, length: float, max_turn: float, out: Path, verbose: bool = False) -> dict:
+    import tomllib
+
     from drivers.sim.config import WorldConfig
     from drivers.sim.world import World
-    import tomllib
     started = time.perf_counter()
     text = world_toml(seed)
     world = World.build(WorldConfig(**tomllib.loads(text)))
     rng = np.random.default_rng([seed, 7])
     workdir = Path(tempfile.mkdtemp(prefix=f"orient-{sensor}-{seed}-", dir=out))
-    server = ServerProcess(workdir / "data", write_configs(workdir / "configs", {"world.toml": text})).start(timeout=300)
+    server = ServerProcess(workdir / "data",
+                           write_configs(workdir / "configs", {"world.toml": text})).start(timeout=300)
     client = server.connect(timeout=900)
     looks, calls, failures = [], 0, []
     dr = (START[0], START[1], math.radians(START[2]))
@@ -127,15 +131,18 @@ def run(seed: int, sensor: str, length: float, max_turn: float, out: Path, verbo
                                                      math.radians(float(fields["heading"]))),
                           "dead_reckoning": dr, "driven": driven, "wall_ms": 1000 * wall,
                           "odometry_ms": record.get("odometry_ms", 0.0),
-                          "sigma_xy": float(fields["sigma_xy"]), "sigma_heading": math.radians(float(fields["sigma_heading"])),
+                          "sigma_xy": float(fields["sigma_xy"]),
+                          "sigma_heading": math.radians(float(fields["sigma_heading"])),
                           "rekeyed": record.get("rekeyed"), "sources": fields.get("sources", ""),
                           "inliers": int(fields.get("matches", 0)),
                           "method": (record.get("motion") or {}).get("method", "")})
             if verbose:
-                l = looks[-1]
-                print(f"  {sensor} {seed} look {calls}: error {100 * math.dist(l['true'][:2], l['estimate'][:2]):.1f} cm "
-                      f"{math.degrees(wrap(l['estimate'][2] - l['true'][2])):+.2f} deg, dead reckoning "
-                      f"{100 * math.dist(l['true'][:2], dr[:2]):.1f} cm, inliers {l['inliers']}, rekeyed {l['rekeyed']}", flush=True)
+                lk = looks[-1]
+                print(f"  {sensor} {seed} look {calls}: "
+                      f"error {100 * math.dist(lk['true'][:2], lk['estimate'][:2]):.1f} cm "
+                      f"{math.degrees(wrap(lk['estimate'][2] - lk['true'][2])):+.2f} deg, dead reckoning "
+                      f"{100 * math.dist(lk['true'][:2], dr[:2]):.1f} cm, inliers {lk['inliers']}, "
+                      f"rekeyed {lk['rekeyed']}", flush=True)
 
         orient()
         while driven < length:
@@ -172,8 +179,9 @@ def se2(pose) -> np.ndarray:
 def segment_errors(looks: list[dict], key: str, length: float) -> list[tuple[float, float]]:
     """(translation % of length, rotation deg/m) from every look to the first one `length` further
     along the true path."""
-    true = [np.array(l["true"][:2]) for l in looks]
-    along = np.concatenate([[0.0], np.cumsum([np.linalg.norm(b - a) for a, b in zip(true, true[1:])])])
+    true = [np.array(lk["true"][:2]) for lk in looks]
+    along = np.concatenate([[0.0], np.cumsum([np.linalg.norm(b - a)
+                                              for a, b in zip(true[:-1], true[1:], strict=True)])])
     errors = []
     for i in range(len(looks)):
         j = int(np.searchsorted(along, along[i] + length))
@@ -189,7 +197,8 @@ def segment_errors(looks: list[dict], key: str, length: float) -> list[tuple[flo
 
 def end_errors(result: dict, key: str) -> tuple[float, float]:
     last = result["looks"][-1]
-    distance = sum(math.dist(a["true"][:2], b["true"][:2]) for a, b in zip(result["looks"], result["looks"][1:]))
+    distance = sum(math.dist(a["true"][:2], b["true"][:2])
+                   for a, b in zip(result["looks"][:-1], result["looks"][1:], strict=True))
     position = math.dist(last[key][:2], last["true"][:2])
     return 100 * position / max(distance, 1e-9), abs(math.degrees(wrap(last[key][2] - last["true"][2])))
 
@@ -208,7 +217,7 @@ def scores(result: dict) -> dict:
                 out[f"{name}_seg{length:g}m_deg_m"] = round(float(np.median(errors[:, 1])), 5)
         end, heading = end_errors(result, key)
         out[f"{name}_end_pct"], out[f"{name}_end_heading_deg"] = round(end, 4), round(heading, 4)
-    wall = [l["wall_ms"] for l in result["looks"][1:]]
+    wall = [lk["wall_ms"] for lk in result["looks"][1:]]
     if wall:
         out["wall_ms_median"] = round(float(np.median(wall)), 1)
     return out
@@ -229,20 +238,22 @@ def summarise(results: list[dict], sensor: str) -> str:
                          f"(mean {errors[:, 0].mean():.2f} % {errors[:, 1].mean():.4f} deg/m, n={len(errors)})")
         ends = np.array([end_errors(r, key) for r in runs])
         lines.append(f"  {label:15s} segments {'; '.join(parts)}")
-        lines.append(f"  {label:15s} end point median {np.median(ends[:, 0]):.2f} % of distance (max {ends[:, 0].max():.2f} %), "
+        lines.append(f"  {label:15s} end point median {np.median(ends[:, 0]):.2f} % of distance "
+                     f"(max {ends[:, 0].max():.2f} %), "
                      f"end heading error median {np.median(ends[:, 1]):.3f} deg, max {ends[:, 1].max():.3f} deg")
     calls = sum(r["calls"] for r in runs)
     failed = sum(len(r["failures"]) for r in runs)
-    looks = [l for r in runs for l in r["looks"][1:]]
-    wall = np.array([l["wall_ms"] for l in looks])
-    odo = np.array([l["odometry_ms"] for l in looks])
-    end_sigma = np.array([math.dist(r["looks"][-1]["estimate"][:2], r["looks"][-1]["true"][:2]) / max(r["looks"][-1]["sigma_xy"], 1e-9)
-                          for r in runs])
+    looks = [lk for r in runs for lk in r["looks"][1:]]
+    wall = np.array([lk["wall_ms"] for lk in looks])
+    odo = np.array([lk["odometry_ms"] for lk in looks])
+    end_sigma = np.array([math.dist(r["looks"][-1]["estimate"][:2], r["looks"][-1]["true"][:2])
+                          / max(r["looks"][-1]["sigma_xy"], 1e-9) for r in runs])
     lines.append(f"  converged {calls - failed}/{calls} = {100 * (calls - failed) / max(calls, 1):.2f} %; "
                  f"per call {np.median(wall):.0f} ms median wall (p95 {np.percentile(wall, 95):.0f}), odometry "
-                 f"{np.median(odo):.0f} ms median (p95 {np.percentile(odo, 95):.0f}); keyframes {sum(bool(l['rekeyed']) for l in looks)}"
+                 f"{np.median(odo):.0f} ms median (p95 {np.percentile(odo, 95):.0f}); "
+                 f"keyframes {sum(bool(lk['rekeyed']) for lk in looks)}"
                  f"/{len(looks)} looks; end error / believed sigma median {np.median(end_sigma):.2f}")
-    turns = sum(l.get("method") == "icp-rotation" for l in looks)
+    turns = sum(lk.get("method") == "icp-rotation" for lk in looks)
     if turns:
         lines.append(f"  {turns} looks after a turn on the spot measured by the rotation alone (free ICP refused)")
     for r in runs:
@@ -272,7 +283,8 @@ def main() -> None:
     started = time.perf_counter()
     planned = [{"seed": seed, "sensor": sensor} for sensor in args.sensors for seed in args.seeds]
     tasks = log.todo(planned)
-    print(f"{len(planned) - len(tasks)} of {len(planned)} runs already in {args.results}; {len(tasks)} to go", flush=True)
+    print(f"{len(planned) - len(tasks)} of {len(planned)} runs already in {args.results}; {len(tasks)} to go",
+          flush=True)
     with ProcessPoolExecutor(args.jobs, max_tasks_per_child=1) as pool:
         futures = {pool.submit(run, task["seed"], task["sensor"], args.length, args.max_turn, args.out, args.verbose):
                    task for task in tasks}

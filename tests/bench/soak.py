@@ -209,7 +209,7 @@ TAG_OF_REPLY = re.compile(rb"^(\S+) (OK|ERR|PROGRESS)(?: |$)")
 class TcpConnection(Connection):
     transport = "tcp"
 
-    async def open(self, host: str, port: int) -> "TcpConnection":
+    async def open(self, host: str, port: int) -> TcpConnection:
         self.reader, self.writer = await asyncio.open_connection(host, port, limit=1 << 20)
         greeting = await asyncio.wait_for(self.reader.readline(), 30)
         if not greeting.startswith(b"RVS "):
@@ -289,7 +289,7 @@ class ZmqConnection(Connection):
         self.context = context
         self.null_waiting: collections.deque[str] = collections.deque()  # undecodable requests
 
-    async def open(self, endpoint: str) -> "ZmqConnection":
+    async def open(self, endpoint: str) -> ZmqConnection:
         self.sock = self.context.socket(zmq.DEALER)
         self.sock.setsockopt(zmq.LINGER, 0)
         self.sock.connect(endpoint)
@@ -742,14 +742,14 @@ def report(run: Run, quit_reply: str, exit_code: int | None, base: Path, config_
     last = [lat for at, _, lat in stats.latencies if duration - 60 <= at < duration]
     print(f"immediate commands' latency (ms)  {'n':>8}{'p50':>9}{'p95':>9}{'p99':>9}{'max':>9}")
     for transport in ("tcp", "zmq", None):
-        pick = (lambda tr: tr == transport) if transport else (lambda tr: True)
+        pick = (lambda tr, want=transport: tr == want) if transport else (lambda tr: True)
         a = percentiles([lat for at, tr, lat in stats.latencies if at < 60 and pick(tr)])
         b = percentiles([lat for at, tr, lat in stats.latencies if duration - 60 <= at < duration and pick(tr)])
         name = transport or "both"
         print(f"  {name:<5} first minute            {a[0]:>8.0f}" + "".join(f"{x:>9.2f}" for x in a[1:]))
         print(f"  {name:<5} last minute             {b[0]:>8.0f}" + "".join(f"{x:>9.2f}" for x in b[1:]))
         print(f"  {name:<5} ratio last/first        {'':>8}" +
-              "".join(f"{y / x:>9.2f}" if x == x and x > 0 else f"{'-':>9}" for x, y in zip(a[1:], b[1:])))
+              "".join(f"{y / x:>9.2f}" if x == x and x > 0 else f"{'-':>9}" for x, y in zip(a[1:], b[1:], strict=True)))
     if not first or not last:
         failures.append("no immediate command answered in the first or the last minute")
 
@@ -762,7 +762,8 @@ def report(run: Run, quit_reply: str, exit_code: int | None, base: Path, config_
         if n:
             ma = statistics.median(a) * 1000 if a else float("nan")
             mb = statistics.median(b) * 1000 if b else float("nan")
-            print(f"  {label:<37}{ma:>10.1f}{mb:>10.1f}{mb / ma if ma == ma and mb == mb else float('nan'):>8.2f}{n:>8}")
+            ratio = mb / ma if ma == ma and mb == mb else float('nan')
+            print(f"  {label:<37}{ma:>10.1f}{mb:>10.1f}{ratio:>8.2f}{n:>8}")
     per_minute = collections.Counter(int(at // 60) for at, _, _ in stats.jobs if at < duration)
     print("  jobs per minute: " + " ".join(str(per_minute[m]) for m in range(int(np.ceil(duration / 60)))))
 

@@ -38,7 +38,6 @@ from __future__ import annotations
 
 import argparse
 import csv
-import json
 import math
 import sys
 import time
@@ -48,8 +47,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-import conftest  # noqa: E402
 from clients.run_log import RunLog, report  # noqa: E402
+
+import conftest  # noqa: E402
 from conftest import ServerProcess, pairs, write_configs  # noqa: E402
 
 VISIBLE = 0.5          # share of the body axis in view that makes the person ground truth
@@ -122,7 +122,7 @@ def run_scene(seed: int, sensor: str, seconds: float, out: Path) -> dict:
                               f"--speed {w['speed']:.2f} --pause {w['pause']:.1f}", timeout=300)
             if " OK " not in reply:
                 raise RuntimeError(f"astronaut: {reply}")
-            for tries in range(1, DETECT_TRIES + 1):    # as an operator would: search again
+            for tries in range(1, DETECT_TRIES + 1):  # noqa: B007  reported below; search again as an operator would
                 detect = pairs(c.command(f"track3d-detect --sensor {sensor} --pan -90:90", timeout=900))
                 if detect.get("found", "0") != "0":
                     break
@@ -196,7 +196,7 @@ def score_scene(rows: list[dict]) -> dict:
 def band_counts(frames: list[dict]) -> dict:
     bands = {}
     for low, high in BANDS:
-        def inside(f: dict) -> bool:
+        def inside(f: dict, low: float = low, high: float = high) -> bool:
             return low <= f["range"] < high
         bands[f"{low:g}-{high:g}"] = {
             "gt": sum(f["gt"] and inside(f) for f in frames),
@@ -269,7 +269,8 @@ def format_summary(s: dict) -> str:
              f"of which coasting {s['coasted_fp']})",
              f"  3-D RMSE within 8 m {f(s['rmse_3d_m_within_8m'])} m, all {f(s['rmse_3d_m_all'])} m; ground plane "
              f"within 8 m {f(s['rmse_xy_m_within_8m'])} m",
-             f"  visible time tracked {f(s['visible_time_tracked'])}; frames per second median {f(s['fps_median'], 1)}, "
+             f"  visible time tracked {f(s['visible_time_tracked'])}; "
+             f"frames per second median {f(s['fps_median'], 1)}, "
              f"min {f(s['fps_min'], 1)}",
              f"  occlusions {s['occlusions']} ({s['occlusions_up_to_3s']} of at most 3 s): found again median "
              f"{f(s['reacquire_s_median'], 2)} s, max {f(s['reacquire_s_max'], 2)} s, within 1 s: "
@@ -298,12 +299,14 @@ def main() -> None:
     args.out.mkdir(parents=True, exist_ok=True)
     log = RunLog(args.results, {"seconds": args.seconds, "tracker": TRACKER})
     if args.rescore:
-        results = [rescored({**r, **r["run"]}) for r in log.runs() if r["run"]["sensor"] == args.sensor and "error" not in r]
+        results = [rescored({**r, **r["run"]}) for r in log.runs()
+                   if r["run"]["sensor"] == args.sensor and "error" not in r]
         print(format_summary(summarise(results, args.sensor)))
         return
     planned = [{"seed": seed, "sensor": args.sensor} for seed in range(args.first_seed, args.first_seed + args.seeds)]
     tasks = log.todo(planned)
-    print(f"{len(planned) - len(tasks)} of {len(planned)} scenes already in {args.results}; {len(tasks)} to go", flush=True)
+    print(f"{len(planned) - len(tasks)} of {len(planned)} scenes already in {args.results}; {len(tasks)} to go",
+          flush=True)
     for task in tasks:     # one at a time: the tracker's frame rate is part of what is measured
         started = time.monotonic()
         try:

@@ -21,8 +21,20 @@ from pathlib import Path
 import pytest
 
 from clients import gnc, mission
-from clients.gnc import (AsyncRvsClient, Event, Progress, Result, RvsBadRequest, RvsBusy, RvsClient, RvsConnectionError,
-                         RvsInterrupted, RvsRequestError, RvsUnknownCommand, ZmqClient)
+from clients.gnc import (
+    AsyncRvsClient,
+    Event,
+    Progress,
+    Result,
+    RvsBadRequest,
+    RvsBusy,
+    RvsClient,
+    RvsConnectionError,
+    RvsInterrupted,
+    RvsRequestError,
+    RvsUnknownCommand,
+    ZmqClient,
+)
 from rvs_server.protocol import Reply
 
 REPO = Path(__file__).resolve().parents[2]

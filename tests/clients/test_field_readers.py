@@ -91,8 +91,8 @@ def test_gdal_finds_a_world_point_in_the_cell_the_manifest_says(product):
         band = ds.read(1)
         xs = [x0 + (c + 0.5) * cell for _, c in picks]
         ys = [y0 + (r + 0.5) * cell for r, _ in picks]
-        sampled = [v[0] for v in ds.sample(zip(xs, ys))]
-        for (r, c), x, y, value in zip(picks, xs, ys, sampled):
+        sampled = [v[0] for v in ds.sample(zip(xs, ys, strict=True))]
+        for (r, c), x, y, value in zip(picks, xs, ys, sampled, strict=True):
             row, col = ds.index(x, y)
             assert (row, col) == (grid["rows"] - 1 - r, c)
             assert band[row, col] == dem[r, c] == value

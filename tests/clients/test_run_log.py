@@ -66,14 +66,16 @@ def test_the_orient_campaign_reports_from_its_file_alone(tmp_path):
     path = tmp_path / "orient.jsonl"
     log = RunLog(path, {"length_m": 12.0, "max_turn_deg": 15.0})
     for seed, drift in ((1, 0.004), (2, 0.006)):
-        result = {"seed": seed, "sensor": "stereo", "calls": 14, "failures": [] if seed == 1 else ["ERR 400 no-overlap"],
+        result = {"seed": seed, "sensor": "stereo", "calls": 14,
+                  "failures": [] if seed == 1 else ["ERR 400 no-overlap"],
                   "looks": fake_traverse(seed, drift)}
         record = log.append({"seed": seed, "sensor": "stereo"}, 60.0, **orient.scores(result),
                             failures=result["failures"], looks=result["looks"])
         assert math.isclose(record["orient_seg5m_pct"], 100 * drift, rel_tol=1e-3)
     log.append({"seed": 3, "sensor": "stereo"}, 1.0, error="RuntimeError('no product')")
 
-    printed = subprocess.run([sys.executable, str(REPO / "tests" / "bench" / "orient_campaign.py"), "--report", str(path)],
+    printed = subprocess.run([sys.executable, str(REPO / "tests" / "bench" / "orient_campaign.py"),
+                              "--report", str(path)],
                              capture_output=True, text=True, timeout=120, check=True).stdout
     assert "== length_m=12.0 max_turn_deg=15.0: 2 runs" in printed
     assert "stereo: 2 traverses, 26 looks" in printed

@@ -106,7 +106,7 @@ def references(tmp_path_factory, config_dir) -> dict[str, Reference]:
         return Reference(fields, server.data_dir / "products" / fields["product"], seconds, progress, lines)
 
     with ThreadPoolExecutor(2) as pool:
-        return dict(zip(COMMANDS, pool.map(run, COMMANDS)))
+        return dict(zip(COMMANDS, pool.map(run, COMMANDS), strict=True))
 
 
 def test_kills_at_random_moments_leave_whole_files_and_the_same_products(tmp_path, config_dir, references):
@@ -268,7 +268,7 @@ def same(a, b) -> bool:
     if isinstance(a, dict):
         return isinstance(b, dict) and a.keys() == b.keys() and all(same(a[k], b[k]) for k in a)
     if isinstance(a, list):
-        return isinstance(b, list) and len(a) == len(b) and all(same(x, y) for x, y in zip(a, b))
+        return isinstance(b, list) and len(a) == len(b) and all(same(x, y) for x, y in zip(a, b, strict=True))
     if isinstance(a, str) and isinstance(b, str):
         return a == b or (_number(a) is not None and _number(b) is not None and same(_number(a), _number(b)))
     if isinstance(a, float) and isinstance(b, (int, float)):

@@ -13,8 +13,9 @@ from pathlib import Path
 
 import numpy as np
 
-from conftest import pairs
 from rvs_server.products.rasters import read_geotiff
+
+from conftest import pairs
 
 MAP = "dem-full-tof --pan -20:20"
 

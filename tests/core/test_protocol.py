@@ -7,8 +7,21 @@ from hypothesis import strategies as st
 from pydantic import Field
 
 from rvs_server.config import CommandConfig, Point, Range, SafeName, bind_tokens, build_config
-from rvs_server.protocol import (BadRequest, RvsError, build_line, format_err, format_event, format_ok, format_pairs,
-                                 format_progress, is_ignored, parse_line, parse_pairs, parse_reply, split_tag)
+from rvs_server.protocol import (
+    BadRequest,
+    RvsError,
+    build_line,
+    format_err,
+    format_event,
+    format_ok,
+    format_pairs,
+    format_progress,
+    is_ignored,
+    parse_line,
+    parse_pairs,
+    parse_reply,
+    split_tag,
+)
 from rvs_server.transports.tcp import TelnetFilter
 
 

@@ -75,7 +75,7 @@ def test_every_edit_is_valid_and_taken_by_a_reload(make_server):
         edit(server.config_dir, name, EDITS[name][1])
     server.reload_configuration()
     after = configuration(server)
-    assert all(a != b for a, b in zip(before, after) if a is not None)  # world_file stays None
+    assert all(a != b for a, b in zip(before, after, strict=True) if a is not None)  # world_file stays None
     assert server.calibration_config.source == "file" and server.settings.log_level == "DEBUG"
 
 

@@ -55,7 +55,8 @@ def seed_recovery_set(data_dir: Path) -> bytes:
 
 def spawn(config_dir: Path, data_dir: Path, port: int = 0, zmq_port: int = 0) -> subprocess.Popen:
     return subprocess.Popen([*SERVER, "--config-dir", str(config_dir), "--data-dir", str(data_dir),
-                             "--port", str(port), "--zmq-port", str(zmq_port), "--web-port", "0", "--sim-speed", str(SIM_SPEED)],
+                             "--port", str(port), "--zmq-port", str(zmq_port), "--web-port", "0",
+                             "--sim-speed", str(SIM_SPEED)],
                             cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, stdin=subprocess.DEVNULL)
 
 

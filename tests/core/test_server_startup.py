@@ -72,6 +72,7 @@ def test_a_taken_port_is_a_clean_error(tmp_path):
         port = taken.getsockname()[1]
         config_dir = write_configs(tmp_path / "configs")
         result = subprocess.run([*SERVER, "--config-dir", str(config_dir), "--data-dir", str(tmp_path / "d"),
-                                 "--port", str(port), "--zmq-port", "0", "--web-port", "0"], cwd=REPO, capture_output=True,
+                                 "--port", str(port), "--zmq-port", "0", "--web-port", "0"],
+                                cwd=REPO, capture_output=True,
                                 text=True, timeout=60, stdin=subprocess.DEVNULL)
     assert result.returncode == 2 and "cannot listen" in result.stderr

@@ -16,9 +16,10 @@ from pathlib import Path
 
 import pytest
 
-from conftest import ServerProcess, pairs, write_configs
 from rvs_server.files import is_temporary
 from rvs_server.products.retention import GIB, ProductInfo, StorageSettings, choose
+
+from conftest import ServerProcess, pairs, write_configs
 
 DAY = 86400.0
 

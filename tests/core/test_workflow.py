@@ -9,8 +9,17 @@ import pytest
 from pydantic import Field
 
 from rvs_server.config import CommandConfig, Settings
-from rvs_server.workflow import (Operations, StepParams, WorkflowError, load_result, load_step, load_workflow,
-                                 resolve_params, run_workflow, save_result)
+from rvs_server.workflow import (
+    Operations,
+    StepParams,
+    WorkflowError,
+    load_result,
+    load_step,
+    load_workflow,
+    resolve_params,
+    run_workflow,
+    save_result,
+)
 from toolbox.grid import GridSpec
 
 ops = Operations()
@@ -90,8 +99,10 @@ def test_a_good_workflow_runs_and_records_provenance(tmp_path):
 
 
 @pytest.mark.parametrize("text, words", [
-    (GOOD.replace("toy.scale", "toy.scael"), ["step 2 (scaled)", "unknown operation 'toy.scael'", "did you mean toy.scale"]),
-    (GOOD.replace("{data: make}", "{data: later}"), ["step 2 (scaled)", "input data uses 'later'", "not an earlier step"]),
+    (GOOD.replace("toy.scale", "toy.scael"),
+     ["step 2 (scaled)", "unknown operation 'toy.scael'", "did you mean toy.scale"]),
+    (GOOD.replace("{data: make}", "{data: later}"),
+     ["step 2 (scaled)", "input data uses 'later'", "not an earlier step"]),
     (GOOD.replace("    inputs: {data: make}\n", ""), ["step 2 (scaled)", "needs input 'data'"]),
     (GOOD.replace("{data: make}", "{data: make, extra: make}"), ["has no input 'extra'"]),
     (GOOD.replace("factor: ${args.factor}", "factor: -1"), ["step 2 (scaled)", "params.factor", "-1", "> 0"]),
@@ -158,7 +169,7 @@ def test_results_round_trip_through_checkpoints(tmp_path):
 class Fit:
     scale: np.float64
     axes: tuple[float, float] | None
-    inner: "Inner"
+    inner: Inner
     notes: dict = field(default_factory=dict)
 
 

@@ -28,7 +28,8 @@ from conftest import REPO, ServerProcess, pairs, write_configs
 # The stereo traverse looks ahead only, so each cycle takes a few views (the repository's full
 # panoramas take 20 s a cycle). Both runs of a case use the same files.
 NARROW_PAN = {"first_pan": "[-40.0, 40.0]", "cycle_pan": "[-40.0, 40.0]"}
-NAV_GOAL = "0.18,1.62"   # open ground 1.6 m from the start of the small world (tests/navigation/test_navigate.py open_goal)
+# open ground 1.6 m from the start of the small world (tests/navigation/test_navigate.py open_goal)
+NAV_GOAL = "0.18,1.62"
 
 
 def navigation_toml() -> str:
@@ -59,7 +60,8 @@ CASES = [
     Case("camera-left", "grab-stereo --output pair", "camera left", "dev.camera_left", "dev.cameras", "pair",
          fails_at="triggering both"),
     Case("camera-right", f"navigate --to {NAV_GOAL} --sensor stereo --tolerance 0.5 --max-steps 3 --output nav",
-         "camera right", "dev.camera_right", "dev.cameras", "nav", fails_at="cycle 2: mapping: step 2/10 pairs: view 2/"),
+         "camera right", "dev.camera_right", "dev.cameras", "nav",
+         fails_at="cycle 2: mapping: step 2/10 pairs: view 2/"),
     Case("trigger", "dem-full --pan -60:60 --output sdem", "trigger", "dev.trigger", "dev.cameras", "sdem",
          fails_at="view 2/"),
 ]
@@ -200,7 +202,8 @@ def test_a_fault_mid_job_is_503_and_reset_continue_finish_the_job(case, clean, f
         equal, detail = same_product(reference.data_dir / "products" / case.product,
                                      server.data_dir / "products" / case.product)
     TABLE.append({"device": case.device, "job": case.job.split(" --output")[0], "reply": reply.split(";")[0][4:],
-                  "hit at": hit.split(" ", 3)[3][:48], "fault after": f"{faulted:.1f} s", "recovery kept": status["recovery"],
+                  "hit at": hit.split(" ", 3)[3][:48], "fault after": f"{faulted:.1f} s",
+                  "recovery kept": status["recovery"],
                   "reset while faulty": still[case.reset_key], "continue": done.split()[1] + " " + done.split()[2],
                   "products equal": f"{'yes' if equal else 'NO'} ({detail})"})
     assert equal, detail

@@ -47,7 +47,7 @@ class Job:
 def devices():
     made = []
 
-    def make(config: DevicesConfig = DevicesConfig(), **world) -> Devices:
+    def make(config: DevicesConfig = DevicesConfig(), **world) -> Devices:  # noqa: B008  never changed by make
         made.append(Devices(config, SimClock(), WorldConfig(seed=2, size_m=(8.0, 8.0), **world)))
         return made[-1]
 
@@ -129,7 +129,8 @@ def test_real_devices_have_no_simulated_drive_truth_or_forward_camera(devices):
     real = devices(REAL)
     rover = real.rover
     assert not real.simulated and rover.pose_estimate == RoverPose(0.0, 0.0)
-    with pytest.raises(BadRequest, match=r'^navigation.drive is simulated but the devices are real: set drive = "gnc"$'):
+    with pytest.raises(BadRequest,
+                       match=r'^navigation.drive is simulated but the devices are real: set drive = "gnc"$'):
         rover.drive("simulated", "navigation.drive")
     with pytest.raises(BadRequest, match=r'^routes.actions is simulated .* set actions = "gnc"$'):
         rover.drive("simulated", "routes.actions")

@@ -21,8 +21,14 @@ import cv2
 import numpy as np
 import pytest
 
-from drivers.avt import (PIKE_F210B_SENSOR, CameraError, CameraSettings, CameraTimeout, SettingsError,
-                         intrinsics_per_mode)
+from drivers.avt import (
+    PIKE_F210B_SENSOR,
+    CameraError,
+    CameraSettings,
+    CameraTimeout,
+    SettingsError,
+    intrinsics_per_mode,
+)
 from drivers.avt_emulator import EmulatedCamera, emulated_stereo_pair
 from drivers.avt_stereo import StereoCameras
 from drivers.avt_vimba import VimbaCamera
@@ -550,7 +556,9 @@ class FakeVimbaCamera:
 
     def __init__(self, camera_id, trigger: EmulatedTrigger, exposure_name="ExposureTime"):
         self.camera_id, self.writes, self.handler, self.queued = camera_id, [], None, 0
-        feature = lambda *args, **kwargs: FakeFeature(self, *args, **kwargs)
+        def feature(*args, **kwargs):
+            return FakeFeature(self, *args, **kwargs)
+
         self.features = {f.name: f for f in [
             feature("SensorWidth", 1920), feature("SensorHeight", 1080),
             feature("BinningHorizontal", 1, value_range=(1, 8)), feature("BinningVertical", 1, value_range=(1, 8)),

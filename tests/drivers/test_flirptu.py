@@ -17,7 +17,6 @@ import pytest
 from drivers.ptu_emulator import D46_PAN_LIMITS, D46_RESOLUTION_ARCSEC, D46_TILT_LIMITS, PtuEmulator
 from drivers.sim.clock import SimClock
 
-
 CLOCK_SPEED = 50.0  # a 3 s move takes 60 ms of wall time
 
 
@@ -53,7 +52,8 @@ def wait_until_still(unit: PtuEmulator, timeout: float = 5.0) -> None:
 def test_flirptu_opens_the_emulator_and_reads_its_settings(ptu):
     # Each of these is parsed from a verbose reply when the driver opens the port.
     assert ptu.echo is True                                      # E  * Echoing ON
-    assert ptu.panResolution == ptu.tiltResolution == D46_RESOLUTION_ARCSEC  # PR * 185.1428 seconds arc per Pan position
+    # PR * 185.1428 seconds arc per Pan position
+    assert ptu.panResolution == ptu.tiltResolution == D46_RESOLUTION_ARCSEC
     assert (ptu.minPan, ptu.maxPan) == D46_PAN_LIMITS            # PN * Minimum Pan position is -3090
     assert (ptu.minTilt, ptu.maxTilt) == D46_TILT_LIMITS         # TX * Maximum Tilt position is 604
     assert ptu.maxPanSpeed == ptu.maxTiltSpeed == 2902           # PU * Maximum Pan speed is 2902 positions/sec

@@ -15,8 +15,15 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from drivers.errors import DeviceFault, DeviceTimeout
-from drivers.ptu import (PtuCommandError, PtuD46, PtuLimitHit, PtuNotResponding, PtuPositionError, PtuSpeedError,
-                         PtuTimeout)
+from drivers.ptu import (
+    PtuCommandError,
+    PtuD46,
+    PtuLimitHit,
+    PtuNotResponding,
+    PtuPositionError,
+    PtuSpeedError,
+    PtuTimeout,
+)
 from drivers.ptu_emulator import D46_RESOLUTION_ARCSEC, PtuEmulator
 from drivers.ptu_motion import plan_move
 from drivers.serial_emulation import make_raw
@@ -493,7 +500,7 @@ def test_position_reads_from_another_thread_during_a_move(ptu, clock):
         reader.join(5)
     assert not failures
     assert len(readings) > 10
-    assert all(a <= b for a, b in zip(readings, readings[1:]))   # a clean, monotonic stream
+    assert all(a <= b for a, b in zip(readings[:-1], readings[1:], strict=True))   # a clean, monotonic stream
     assert 0.0 <= min(readings) and max(readings) <= final[0]
 
 

@@ -19,12 +19,35 @@ from drivers.sim.clock import SimClock
 from drivers.sim.faults import FaultSwitch
 from drivers.sim.render import render
 from drivers.sim.world import World, WorldConfig
-from drivers.sr4000 import (AMPLITUDE_SATURATED, CONFIDENCE_FULL, AcquireMode, ModulationFrequency, Sr4000, Sr4000Error,
-                            Sr4000LibraryMissing, Sr4000NotAnswering, Sr4000NotFound, Sr4000Settings,
-                            Sr4000SettingsError, Sr4000Timeout, TofFrame, false_colour, frequency_for_range, grab,
-                            integration_time_ms, preview, wait_for_exposure)
-from drivers.sr4000_emulator import (MRPT_INTRINSICS, Exposure, Sr4000Emulator, Sr4000Model, auto_exposure_step,
-                                     frame_time_s, simulate_frame)
+from drivers.sr4000 import (
+    AMPLITUDE_SATURATED,
+    CONFIDENCE_FULL,
+    AcquireMode,
+    ModulationFrequency,
+    Sr4000,
+    Sr4000LibraryMissing,
+    Sr4000NotAnswering,
+    Sr4000NotFound,
+    Sr4000Settings,
+    Sr4000SettingsError,
+    Sr4000Timeout,
+    TofFrame,
+    false_colour,
+    frequency_for_range,
+    grab,
+    integration_time_ms,
+    preview,
+    wait_for_exposure,
+)
+from drivers.sr4000_emulator import (
+    MRPT_INTRINSICS,
+    Exposure,
+    Sr4000Emulator,
+    Sr4000Model,
+    auto_exposure_step,
+    frame_time_s,
+    simulate_frame,
+)
 from drivers.sr4000_mesasr import MesaSr4000
 
 FAKE_SOURCE = Path(__file__).parent / "fakes" / "fake_mesasr.c"

@@ -37,7 +37,7 @@ def tilt_error_deg(product) -> float:
     estimated = json.loads((product / "views.json").read_text())
     true = json.loads((product / "truth" / "views.json").read_text())
     worst = 0.0
-    for view, truth in zip(estimated, true):
+    for view, truth in zip(estimated, true, strict=True):
         up_estimated = np.asarray(view["camera_to_world"])[:3, :3].T @ [0.0, 0.0, 1.0]
         up_true = np.asarray(truth)[:3, :3].T @ [0.0, 0.0, 1.0]
         worst = max(worst, math.degrees(math.acos(float(np.clip(up_estimated @ up_true, -1.0, 1.0)))))

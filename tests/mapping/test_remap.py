@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 import tifffile
 
-from conftest import REPO, pairs
 from clients.cli import main as rvs
+
+from conftest import REPO, pairs
 
 STRICT_STEP = 0.03     # m; mapping.toml's step_limit is 0.10
 

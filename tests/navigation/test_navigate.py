@@ -100,8 +100,9 @@ def test_navigate_arrives_without_touching_a_rock(server_factory, world):
     # first, then visual odometry and the sun, where the next map found the rover. Looks within a
     # cycle are no more than the step apart (plus the drive error), and short legs share one.
     looks = traverse["orients"]
-    assert {o["cycle"] for o in looks} == {c["cycle"] for c in traverse["cycles"]} and len(looks) > len(traverse["cycles"])
-    gaps = [math.dist((a["x"], a["y"]), (b["x"], b["y"])) for a, b in zip(looks, looks[1:])
+    assert {o["cycle"] for o in looks} == {c["cycle"] for c in traverse["cycles"]}
+    assert len(looks) > len(traverse["cycles"])
+    gaps = [math.dist((a["x"], a["y"]), (b["x"], b["y"])) for a, b in zip(looks[:-1], looks[1:], strict=True)
             if a["cycle"] == b["cycle"] and "x" in a and "x" in b]    # a refused look has no place
     assert gaps and max(gaps) < 1.1, looks
     assert len(looks) < len(traverse["cycles"]) + 2 * path_length(traverse["estimated_path"]) + 4, looks
@@ -265,7 +266,7 @@ def cycle_product(server) -> str:
 
 def distance_to_polyline(points: np.ndarray, line: np.ndarray) -> np.ndarray:
     best = np.full(len(points), np.inf)
-    for a, b in zip(line[:-1], line[1:]):
+    for a, b in zip(line[:-1], line[1:], strict=True):
         t = np.clip(((points - a) @ (b - a)) / max(float((b - a) @ (b - a)), 1e-12), 0.0, 1.0)
         best = np.minimum(best, np.linalg.norm(points - (a + t[:, None] * (b - a)), axis=1))
     return best

@@ -119,7 +119,8 @@ def test_a_drive_leg_followed_with_orient_looks_keeps_to_its_line(server_factory
     short part: the wheel check refuses that look (dead reckoning stands in)."""
     routes = (REPO / "configs" / "routes.toml").read_text()
     assert "orient = false" in routes
-    server = server_factory(configs={"world.toml": WORLD, "routes.toml": routes.replace("orient = false", "orient = true")})
+    server = server_factory(configs={"world.toml": WORLD,
+                                     "routes.toml": routes.replace("orient = false", "orient = true")})
     products = server.data_dir / "products"
     with server.connect(timeout=600) as c:
         command(c, "route-record start --name line")

@@ -11,8 +11,18 @@ import numpy as np
 import pytest
 
 from rvs_server.routes import store as routes_store
-from rvs_server.routes.store import (DATABASE_FILE, MIGRATIONS, SCHEMA_VERSION, Action, RouteStore, RouteStoreConfig,
-                                     RouteStoreError, Triplet, migrate, reverse_triplets)
+from rvs_server.routes.store import (
+    DATABASE_FILE,
+    MIGRATIONS,
+    SCHEMA_VERSION,
+    Action,
+    RouteStore,
+    RouteStoreConfig,
+    RouteStoreError,
+    Triplet,
+    migrate,
+    reverse_triplets,
+)
 from toolbox.routes.match import make_matcher
 
 

@@ -183,7 +183,7 @@ def test_a_render_sees_the_world_before_or_after_a_change_never_half(world):
         for _ in range(30):
             view = render(world, pose, CAMERA)
             seen.append(view.range)
-            view.intensity   # lazily computed images use the same state as the rays
+            _ = view.intensity   # lazily computed images use the same state as the rays
     finally:
         stop.set()
         thread.join()

@@ -24,7 +24,7 @@ def heights() -> np.ndarray:
 def edge_counts(triangles: np.ndarray) -> dict[tuple[int, int], int]:
     edges = np.sort(np.concatenate([triangles[:, [0, 1]], triangles[:, [1, 2]], triangles[:, [2, 0]]]), axis=1)
     keys, counts = np.unique(edges, axis=0, return_counts=True)
-    return {tuple(k): c for k, c in zip(keys.tolist(), counts.tolist())}
+    return {tuple(k): c for k, c in zip(keys.tolist(), counts.tolist(), strict=True)}
 
 
 @pytest.mark.parametrize("tolerance", [0.0005, 0.003, 0.02])

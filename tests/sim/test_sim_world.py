@@ -228,6 +228,7 @@ def test_a_camera_looking_at_the_sky_hits_nothing(world):
 
 def test_rover_camera_sees_the_ground_ahead(world):
     rover = Rover(world, heading=math.pi / 2)
-    view = render(world, rover.sensor_to_world("left", tilt_deg=-30.0), Intrinsics.from_fov(160, 120, math.radians(60.0)))
+    view = render(world, rover.sensor_to_world("left", tilt_deg=-30.0),
+                  Intrinsics.from_fov(160, 120, math.radians(60.0)))
     assert view.hit.mean() > 0.9
     assert np.median(view.points[view.hit][:, 1]) > 1.0          # north of the rover, where it looks

@@ -10,8 +10,15 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from toolbox.hopping.icp import (align_with_overlap_elimination, apply_transform, common_bounds, crop_mask,
-                                 horizontal_bounds, icp_point_to_point, transform_change)
+from toolbox.hopping.icp import (
+    align_with_overlap_elimination,
+    apply_transform,
+    common_bounds,
+    crop_mask,
+    horizontal_bounds,
+    icp_point_to_point,
+    transform_change,
+)
 
 
 def terrain(seed: int, rocks: int = 60):

@@ -13,11 +13,27 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from toolbox.grid import GridSpec
-from toolbox.hopping.ballistics import (ballistic_positions, elevation_for_target, hop_range, landing_error_ellipse,
-                                        launch_to_target, speed_for_target)
-from toolbox.hopping.landing import (LandingParams, NoGroundError, ellipse_safe_mask, ellipse_semi_axes, goal_map,
-                                     obstacle_mask, plan_landing, protrusion_map, swept_height, top_down_maps,
-                                     trajectory_collides)
+from toolbox.hopping.ballistics import (
+    ballistic_positions,
+    elevation_for_target,
+    hop_range,
+    landing_error_ellipse,
+    launch_to_target,
+    speed_for_target,
+)
+from toolbox.hopping.landing import (
+    LandingParams,
+    NoGroundError,
+    ellipse_safe_mask,
+    ellipse_semi_axes,
+    goal_map,
+    obstacle_mask,
+    plan_landing,
+    protrusion_map,
+    swept_height,
+    top_down_maps,
+    trajectory_collides,
+)
 from toolbox.hopping.plane import Plane
 
 G = 1.62
@@ -146,7 +162,7 @@ def test_ellipse_safe_mask_equals_brute_force():
         hx, hy = gx[hazard], gy[hazard]
         rows, cols = np.nonzero(candidates)
         semi = ellipse_semi_axes(np.hypot(gx[rows, cols], gy[rows, cols]), params)
-        for k, (r, c) in enumerate(zip(rows, cols)):
+        for k, (r, c) in enumerate(zip(rows, cols, strict=True)):
             heading = math.atan2(gy[r, c], gx[r, c])
             # Every hazard cell and every cell just outside the grid (unknown) must be outside the ellipse.
             ring_x = np.concatenate([hx, xs[0] - 0.05 + 0 * ys, xs[-1] + 0.05 + 0 * ys, xs, xs])

@@ -18,10 +18,21 @@ from hypothesis import strategies as st
 from scipy.optimize import minimize_scalar
 from scipy.spatial.transform import Rotation
 
-from toolbox.hopping.parabola import (FlightFit, ballistic_design, centre_of_mass_positions, conic_axis_angle,
-                                      fit_conic_through_origin, fit_flight, fit_flight_paper, fit_parabola,
-                                      orient_parabola, parabola_closest_x, parabola_distance, rotation_2d,
-                                      scale_from_parabola)
+from toolbox.hopping.parabola import (
+    FlightFit,
+    ballistic_design,
+    centre_of_mass_positions,
+    conic_axis_angle,
+    fit_conic_through_origin,
+    fit_flight,
+    fit_flight_paper,
+    fit_parabola,
+    orient_parabola,
+    parabola_closest_x,
+    parabola_distance,
+    rotation_2d,
+    scale_from_parabola,
+)
 from toolbox.hopping.plane import fit_plane_lsq, plane_basis, ransac_plane
 
 G = 1.62

@@ -17,9 +17,22 @@ from drivers.sim.render import render
 from drivers.sim.rover import Rover
 from drivers.sim.world import World
 from toolbox.camera import Intrinsics
-from toolbox.routes.match import (ContourConfig, ContourMatcher, FeatureConfig, FeatureMatcher, PlaceMatcher,
-                                  bright_cells, cell_brightness, cluster_contour, heading_offset, horizontal_runs,
-                                  main_cluster, make_matcher, merge_vertical_runs, rank_route)
+from toolbox.routes.match import (
+    ContourConfig,
+    ContourMatcher,
+    FeatureConfig,
+    FeatureMatcher,
+    PlaceMatcher,
+    bright_cells,
+    cell_brightness,
+    cluster_contour,
+    heading_offset,
+    horizontal_runs,
+    main_cluster,
+    make_matcher,
+    merge_vertical_runs,
+    rank_route,
+)
 
 # ============================================================================ synthetic images
 
@@ -94,11 +107,11 @@ def test_run_clustering_equals_4_connected_labelling(bright):
     runs = horizontal_runs(bright)
     labels = merge_vertical_runs(runs)
     ours = np.full(bright.shape, -1)
-    for (row, first, last), label in zip(runs, labels):
+    for (row, first, last), label in zip(runs, labels, strict=True):
         ours[row, first:last + 1] = label
     count, theirs = cv2.connectedComponents(bright.astype(np.uint8), connectivity=4)
     assert labels.max(initial=-1) + 1 == count - 1
-    pairs = {(a, b) for a, b in zip(ours[bright], theirs[bright])}
+    pairs = {(a, b) for a, b in zip(ours[bright], theirs[bright], strict=True)}
     assert len(pairs) == count - 1                      # a bijection between the two labellings
 
 

@@ -15,11 +15,27 @@ from drivers.sim.rover import Rover
 from drivers.sim.world import World, WorldConfig
 from drivers.sr4000 import CONFIDENCE_FULL, wait_for_exposure
 from drivers.sr4000_emulator import MRPT_INTRINSICS, Sr4000Emulator
-from toolbox.odometry.depth import (DepthFrame, DepthOdometryParams, check_plausible, depth_motion, depth_picture,
-                                    depth_turn, information_condition, motion_error, pinhole_depth,
-                                    point_to_plane_covariance, point_to_plane_jacobian, refine_guess, register,
-                                    register_rotation, rotate_about, seen_share, usable_points, voxel_cloud)
 from toolbox.geometry import apply
+from toolbox.odometry.depth import (
+    DepthFrame,
+    DepthOdometryParams,
+    check_plausible,
+    depth_motion,
+    depth_picture,
+    depth_turn,
+    information_condition,
+    motion_error,
+    pinhole_depth,
+    point_to_plane_covariance,
+    point_to_plane_jacobian,
+    refine_guess,
+    register,
+    register_rotation,
+    rotate_about,
+    seen_share,
+    usable_points,
+    voxel_cloud,
+)
 from toolbox.odometry.estimate import OdometryFailure, exp_se3
 
 TILT_DEG = -30.0              # the TOF looks along the heading, this far down: the best of -15..-40 (bench)
@@ -285,7 +301,9 @@ def test_the_jacobian_is_the_right_perturbation_of_key_from_new():
     n = rng.normal(size=(5, 3))
     n /= np.linalg.norm(n, axis=1, keepdims=True)
     t = exp_se3(np.r_[0.3, -0.2, 0.5, 1.0, 2.0, -0.5])
-    residual = lambda T: np.sum(n * (apply(T, p) - q), axis=1)
+    def residual(T):
+        return np.sum(n * (apply(T, p) - q), axis=1)
+
     numeric = np.column_stack([(residual(t @ exp_se3(e)) - residual(t @ exp_se3(-e))) / 2e-6
                                for e in np.eye(6) * 1e-6])
     np.testing.assert_allclose(point_to_plane_jacobian(p, n, t), numeric, atol=1e-6)

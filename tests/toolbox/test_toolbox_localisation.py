@@ -17,7 +17,7 @@ def terrain(rng: np.random.Generator, rocks: int, extent: float = 5.0, spacing: 
     y = y + rng.uniform(-spacing / 2, spacing / 2, y.shape)
     z = 0.05 * np.sin(x / 1.7) + 0.04 * np.cos(y / 2.3)
     for cx, cy, r in zip(rng.uniform(-extent, extent, rocks), rng.uniform(-extent, extent, rocks),
-                         rng.uniform(0.1, 0.35, rocks)):
+                         rng.uniform(0.1, 0.35, rocks), strict=True):
         d2 = (x - cx) ** 2 + (y - cy) ** 2
         z = np.where(d2 < r * r, z + np.sqrt(np.maximum(r * r - d2, 0)) * 0.8, z)
     return np.column_stack([x.ravel(), y.ravel(), z.ravel() + rng.normal(0, 0.005, x.size)])

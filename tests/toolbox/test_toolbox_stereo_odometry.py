@@ -188,7 +188,7 @@ def test_refine_motion_covariance_matches_the_scatter():
         noisy = pixels_new + rng.normal(0, 0.3, pixels_new.shape)
         pose, covariance, kept, rms = S.refine_motion(truth, points_key, noisy, np.full_like(points_key, np.nan),
                                                       project(points_key, CAMERA), rig, params)
-        deltas.append(np.concatenate([cv2.Rodrigues((truth[:3, :3].T @ pose[:3, :3]))[0].ravel(),
+        deltas.append(np.concatenate([cv2.Rodrigues(truth[:3, :3].T @ pose[:3, :3])[0].ravel(),
                                       truth[:3, :3].T @ (pose[:3, 3] - truth[:3, 3])]))
         covariances.append(covariance)
         assert kept.mean() > 0.98 and 0.3 < rms < 0.55       # per point: sqrt(2) * 0.3 px

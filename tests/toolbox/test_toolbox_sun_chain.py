@@ -29,7 +29,8 @@ def test_sun_heading_error_matches_its_sigma():
         body = rotation_rpy(roll, pitch, heading).T @ sun
         noisy = body + rng.normal(0, sensor, 3)
         noisy -= (noisy - body) @ body * body       # angular noise only: across the sun direction
-        estimate = sun_heading(noisy / np.linalg.norm(noisy), roll + rng.normal(0, tilt), pitch + rng.normal(0, tilt), sun)
+        estimate = sun_heading(noisy / np.linalg.norm(noisy), roll + rng.normal(0, tilt),
+                               pitch + rng.normal(0, tilt), sun)
         errors.append(math.atan2(math.sin(estimate - heading), math.cos(estimate - heading)))
     assert np.std(errors) == pytest.approx(sun_heading_sigma(sensor, tilt, elevation), rel=0.15)
 
@@ -59,7 +60,8 @@ def test_carry_propagates_the_motion_covariance_to_first_order():
     for _ in range(3000):
         start = RoverPose(*rng.multivariate_normal([0, 0], key.covariance[:2, :2]), 0.0,
                           rng.normal(0, 1e-3)).to_world()
-        new = start @ camera_to_rover @ motion @ exp_se3(rng.multivariate_normal(np.zeros(6), sigma)) @ np.linalg.inv(camera_to_rover)
+        new = (start @ camera_to_rover @ motion @ exp_se3(rng.multivariate_normal(np.zeros(6), sigma))
+               @ np.linalg.inv(camera_to_rover))
         samples.append(planar(new))
     sampled = np.cov(np.array(samples).T)
     assert np.diag(sampled) == pytest.approx(np.diag(carried.covariance), rel=0.1)

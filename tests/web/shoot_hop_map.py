@@ -15,8 +15,9 @@ from urllib.parse import urlsplit
 
 HERE = Path(__file__).resolve().parent
 sys.path[:0] = [str(HERE), str(HERE.parent)]
-from conftest import ServerProcess, write_configs  # noqa: E402
 from web_client import free_port  # noqa: E402
+
+from conftest import ServerProcess, write_configs  # noqa: E402
 
 HOPPING = """sfm_threads = 1
 [hopper.camera]
@@ -35,7 +36,8 @@ def main() -> None:
 
     with tempfile.TemporaryDirectory() as tmp, sync_playwright() as playwright:
         base = Path(tmp)
-        server = ServerProcess(data_dir=base / "data", config_dir=write_configs(base / "configs", {"hopping.toml": HOPPING}),
+        server = ServerProcess(data_dir=base / "data",
+                               config_dir=write_configs(base / "configs", {"hopping.toml": HOPPING}),
                                extra_args=["--web-port", str(free_port())]).start()
         browser = playwright.chromium.launch(executable_path=CHROMIUM, args=["--no-sandbox", "--disable-gpu"])
         try:

@@ -19,9 +19,9 @@ from urllib.parse import urlsplit
 import cv2
 import numpy as np
 import pytest
+from test_browser import CHROMIUM, TOKEN, Watched, browser, start_with_token, sync_api  # noqa: F401 (fixture)
 
 from conftest import pairs
-from test_browser import CHROMIUM, TOKEN, Watched, browser, start_with_token, sync_api  # noqa: F401 (fixture)
 
 pytestmark = pytest.mark.skipif(CHROMIUM is None, reason="no chromium on this machine: ./setup.sh installs "
                                 "Debian's chromium package (apt-get install chromium)")
@@ -39,7 +39,8 @@ def path_pixels_drawn(png: bytes, points: list[tuple[int, int]]) -> tuple[int, i
     image = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)[:, :, ::-1]
     h, w = image.shape[:2]
     seen = 0
-    segments = [(a, b) for a, b in zip(points, points[1:]) if abs(a[0] - b[0]) + abs(a[1] - b[1]) >= 6]
+    segments = [(a, b) for a, b in zip(points[:-1], points[1:], strict=True)
+                if abs(a[0] - b[0]) + abs(a[1] - b[1]) >= 6]
     for a, b in segments:
         mx, my = (a[0] + b[0]) // 2, (a[1] + b[1]) // 2
         near = [tuple(int(v) for v in image[y, x]) for x in range(mx - 2, mx + 3) for y in range(my - 2, my + 3)
@@ -50,7 +51,7 @@ def path_pixels_drawn(png: bytes, points: list[tuple[int, int]]) -> tuple[int, i
     return seen, len(segments)
 
 
-def test_page_follows_a_navigate(server_factory, tmp_path, browser):
+def test_page_follows_a_navigate(server_factory, tmp_path, browser):  # noqa: F811  the fixture imported above
     server = start_with_token(server_factory, tmp_path)
     page = browser.new_page(viewport={"width": 1400, "height": 950})   # device scale 1: canvas px = CSS px
     watched = Watched(page)

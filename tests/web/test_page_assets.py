@@ -66,5 +66,6 @@ def test_no_static_file_names_another_host():
     for path in files:
         text = path.read_text(errors="replace")
         assert not re.search(r"https?://", text, re.I), f"{path.name} names an outside URL"
-        assert not re.search(r"""(?:src|href|url)\s*[=(]\s*["']?//""", text, re.I), f"{path.name}: protocol-relative URL"
+        assert not re.search(r"""(?:src|href|url)\s*[=(]\s*["']?//""", text, re.I), \
+            f"{path.name}: protocol-relative URL"
         assert "@import" not in text and "@font-face" not in text, f"{path.name} loads a style or font"

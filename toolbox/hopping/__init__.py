@@ -21,18 +21,63 @@ from dataclasses import dataclass
 import numpy as np
 
 from toolbox.geometry import apply, compose, rigid, rotation_z
-from toolbox.hopping.ballistics import (CHI2_2D_95, LandingEllipse, Launch, ballistic_positions, elevation_for_target,
-                                        hop_range, landing_error_ellipse, launch_to_target, speed_for_target)
-from toolbox.hopping.icp import (IcpRound, OverlapAlignment, align_with_overlap_elimination, common_bounds, crop_mask,
-                                 estimate_normals, horizontal_bounds, icp_point_to_plane, icp_point_to_point,
-                                 icp_yaw_translation, transform_change)
-from toolbox.hopping.landing import (LandingParams, LandingPlan, NoGroundError, TopDown, clearance_map,
-                                     ellipse_safe_mask, goal_map, ground_plane, known_mask, obstacle_mask, plan_landing,
-                                     protrusion_map, selection_score, swept_height, top_down_maps, trajectory_collides)
-from toolbox.hopping.parabola import (MOON_GRAVITY, FlightFit, centre_of_mass_positions, conic_axis_angle,
-                                      drop_beyond_mean_distance, fit_conic_through_origin, fit_flight, fit_flight_paper,
-                                      fit_parabola, orient_parabola, parabola_closest_x, parabola_distance,
-                                      scale_from_parabola)
+from toolbox.hopping.ballistics import (
+    CHI2_2D_95,
+    LandingEllipse,
+    Launch,
+    ballistic_positions,
+    elevation_for_target,
+    hop_range,
+    landing_error_ellipse,
+    launch_to_target,
+    speed_for_target,
+)
+from toolbox.hopping.icp import (
+    IcpRound,
+    OverlapAlignment,
+    align_with_overlap_elimination,
+    common_bounds,
+    crop_mask,
+    estimate_normals,
+    horizontal_bounds,
+    icp_point_to_plane,
+    icp_point_to_point,
+    icp_yaw_translation,
+    transform_change,
+)
+from toolbox.hopping.landing import (
+    LandingParams,
+    LandingPlan,
+    NoGroundError,
+    TopDown,
+    clearance_map,
+    ellipse_safe_mask,
+    goal_map,
+    ground_plane,
+    known_mask,
+    obstacle_mask,
+    plan_landing,
+    protrusion_map,
+    selection_score,
+    swept_height,
+    top_down_maps,
+    trajectory_collides,
+)
+from toolbox.hopping.parabola import (
+    MOON_GRAVITY,
+    FlightFit,
+    centre_of_mass_positions,
+    conic_axis_angle,
+    drop_beyond_mean_distance,
+    fit_conic_through_origin,
+    fit_flight,
+    fit_flight_paper,
+    fit_parabola,
+    orient_parabola,
+    parabola_closest_x,
+    parabola_distance,
+    scale_from_parabola,
+)
 from toolbox.hopping.plane import Plane, fit_plane_lsq, plane_basis, ransac_plane
 
 __all__ = [
@@ -43,7 +88,8 @@ __all__ = [
     "OverlapAlignment", "IcpRound", "align_with_overlap_elimination", "horizontal_bounds", "common_bounds",
     "crop_mask", "estimate_normals", "icp_point_to_plane", "icp_point_to_point", "icp_yaw_translation",
     "transform_change",
-    "LandingParams", "LandingPlan", "NoGroundError", "TopDown", "plan_landing", "top_down_maps", "ground_plane", "protrusion_map",
+    "LandingParams", "LandingPlan", "NoGroundError", "TopDown", "plan_landing", "top_down_maps", "ground_plane",
+    "protrusion_map",
     "known_mask", "obstacle_mask", "clearance_map", "goal_map", "ellipse_safe_mask", "selection_score",
     "swept_height", "trajectory_collides",
     "Launch", "LandingEllipse", "hop_range", "landing_error_ellipse", "launch_to_target", "speed_for_target",

@@ -38,8 +38,15 @@ from scipy.ndimage import binary_erosion, distance_transform_edt
 from scipy.spatial import cKDTree
 
 from toolbox.grid import GridSpec
-from toolbox.hopping.ballistics import (CHI2_2D_95, LandingEllipse, Launch, ballistic_positions, landing_error_ellipse,
-                                        launch_to_target, speed_for_target)
+from toolbox.hopping.ballistics import (
+    CHI2_2D_95,
+    LandingEllipse,
+    Launch,
+    ballistic_positions,
+    landing_error_ellipse,
+    launch_to_target,
+    speed_for_target,
+)
 from toolbox.hopping.parabola import MOON_GRAVITY
 from toolbox.hopping.plane import Plane, ransac_plane
 
@@ -267,7 +274,7 @@ def ellipse_safe_mask(hazard: np.ndarray, spec: GridSpec, start_xy: np.ndarray, 
         bx, by = spec.centre_of(brow - 1, bcol - 1)
         tree = cKDTree(np.column_stack([bx, by]))
         near = tree.query_ball_point(np.column_stack([xs[unsure], ys[unsure]]), semi[unsure, 0] + 1e-9)
-        for k, hits in zip(unsure, near):
+        for k, hits in zip(unsure, near, strict=True):
             hx, hy = bx[hits] - xs[k], by[hits] - ys[k]
             c, s = np.cos(heading[k]), np.sin(heading[k])
             along, across = hx * c + hy * s, -hx * s + hy * c

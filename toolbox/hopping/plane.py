@@ -23,7 +23,7 @@ class Plane:
         points = np.asarray(points, dtype=np.float64)
         return points - np.outer(self.signed_distance(points), self.normal)
 
-    def oriented(self, up: np.ndarray) -> "Plane":
+    def oriented(self, up: np.ndarray) -> Plane:
         """The same plane with its normal on the side of `up` (so signed distance is height above it)."""
         return self if float(self.normal @ up) >= 0 else Plane(-self.normal, -self.offset)
 

@@ -17,8 +17,8 @@ what a wheel meets, so taking it keeps obstacles at their full height.
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import cv2
 import numpy as np
@@ -193,7 +193,7 @@ def inside_polygon(xy: np.ndarray, polygon: np.ndarray) -> np.ndarray:
     polygon = np.asarray(polygon, dtype=np.float64)
     x, y = xy[:, 0], xy[:, 1]
     inside = np.zeros(len(xy), dtype=bool)
-    for (x0, y0), (x1, y1) in zip(polygon, np.roll(polygon, -1, axis=0)):
+    for (x0, y0), (x1, y1) in zip(polygon, np.roll(polygon, -1, axis=0), strict=True):
         crosses = (y0 > y) != (y1 > y)
         with np.errstate(divide="ignore", invalid="ignore"):
             x_cross = x0 + (y - y0) * (x1 - x0) / (y1 - y0)

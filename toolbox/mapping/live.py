@@ -96,7 +96,8 @@ class LiveMap:
         """Hazard maps recomputed over the touched box grown by the reach, from that grown once more."""
         k, rows, cols = self.reach, self.spec.rows, self.spec.cols
         out_r0, out_r1, out_c0, out_c1 = max(0, r0 - k), min(rows, r1 + k), max(0, c0 - k), min(cols, c1 + k)
-        in_r0, in_r1, in_c0, in_c1 = max(0, out_r0 - k), min(rows, out_r1 + k), max(0, out_c0 - k), min(cols, out_c1 + k)
+        in_r0, in_r1 = max(0, out_r0 - k), min(rows, out_r1 + k)
+        in_c0, in_c1 = max(0, out_c0 - k), min(cols, out_c1 + k)
         maps = hazard_maps(self.heights[in_r0:in_r1, in_c0:in_c1], self.spec.cell, self.config)
         inner = (slice(out_r0 - in_r0, out_r1 - in_r0), slice(out_c0 - in_c0, out_c1 - in_c0))
         target = (slice(out_r0, out_r1), slice(out_c0, out_c1))

@@ -15,8 +15,8 @@ the ray meets the terrain more than `tolerance` before reaching it.
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import numpy as np
 import open3d as o3d

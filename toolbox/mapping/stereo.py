@@ -106,7 +106,7 @@ def stereo_points(left: np.ndarray, right: np.ndarray, rect: Rectification,
     return disparity_to_points(disparity, rect)
 
 
-def textured(image: np.ndarray, config: "SgbmConfig") -> np.ndarray:
+def textured(image: np.ndarray, config: SgbmConfig) -> np.ndarray:
     """False in and within a block of large featureless areas without signal (the black beyond the
     terrain's edge, the rectification's fill, a saturated sky): no block there has anything to match,
     and a block straddling its edge matches the edge at whatever disparity a half-pixel of

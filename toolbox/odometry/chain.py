@@ -96,7 +96,8 @@ class HeadingFix:
     used: bool
 
 
-def fuse_heading(belief: PlanarBelief, heading: float, sigma: float, gate: float = 5.0) -> tuple[PlanarBelief, HeadingFix]:
+def fuse_heading(belief: PlanarBelief, heading: float, sigma: float,
+                 gate: float = 5.0) -> tuple[PlanarBelief, HeadingFix]:
     """Kalman update of the planar state with an absolute heading (rad) of 1-sigma `sigma`; refused
     (belief unchanged) when the innovation exceeds `gate` sigmas of its own spread."""
     state, p = planar(belief.rover_to_world), belief.covariance

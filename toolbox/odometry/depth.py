@@ -85,7 +85,7 @@ class DepthFrame:
 
     @classmethod
     def from_arrays(cls, points: np.ndarray, amplitude: np.ndarray, fx: float, fy: float, cx: float,
-                    cy: float, confidence: np.ndarray | None = None, min_confidence: float = 0.0) -> "DepthFrame":
+                    cy: float, confidence: np.ndarray | None = None, min_confidence: float = 0.0) -> DepthFrame:
         """A frame from a camera's x, y, z and amplitude images: invalid where z <= 0 or not finite
         (the SR4000 writes 0 for no measurement) or where confidence (0..1) is below min_confidence."""
         points = np.asarray(points, dtype=np.float32).copy()
@@ -307,7 +307,8 @@ def check_plausible(registration: Registration, guess: np.ndarray, params: Depth
     agrees = fitness >= params.min_overlap_floor and fitness >= params.min_seen_match * seen
     if fitness < params.min_overlap and not agrees:
         raise OdometryFailure("no-overlap", f"only {fitness:.0%} of the new frame's points lie within "
-                              f"{registration.max_distance * 100:.0f} cm of the keyframe's ({fitness / max(seen, 1e-9):.0%} "
+                              f"{registration.max_distance * 100:.0f} cm of the keyframe's "
+                              f"({fitness / max(seen, 1e-9):.0%} "
                               f"of the {seen:.0%} it could see); at least {params.min_overlap:.0%}, or "
                               f"{params.min_seen_match:.0%} of what it could see, are needed")
     if len(registration.correspondences) < params.min_inliers:

@@ -58,9 +58,12 @@ class StereoOdometryParams(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     features: int = Field(1500, gt=0, description="features wanted in each left image")
-    grid: tuple[int, int] = Field((12, 8), description="detection buckets (columns, rows): features spread over the view")
-    fast_threshold: int = Field(7, ge=1, description="FAST corner threshold (grey levels); low, the grid keeps the best")
-    ratio: float = Field(0.9, gt=0, le=1, description="Lowe's ratio: best match distance below this share of the second")
+    grid: tuple[int, int] = Field((12, 8),
+                                  description="detection buckets (columns, rows): features spread over the view")
+    fast_threshold: int = Field(7, ge=1,
+                                description="FAST corner threshold (grey levels); low, the grid keeps the best")
+    ratio: float = Field(0.9, gt=0, le=1,
+                         description="Lowe's ratio: best match distance below this share of the second")
     max_hamming: int = Field(64, gt=0, description="largest descriptor distance (of 256 bits) accepted as a match")
     stereo_row_px: float = Field(1.5, gt=0, description="rectified row difference allowed between left and right")
     max_depth_m: float = Field(25.0, gt=0, description="farther points carry too little depth to place the camera")
@@ -103,7 +106,7 @@ class Rectified:
     def baseline(self) -> float:
         return float(-self.p2[0, 3] / self.p2[0, 0])
 
-    def disparity_range(self, params: "StereoOdometryParams") -> tuple[float, float]:
+    def disparity_range(self, params: StereoOdometryParams) -> tuple[float, float]:
         """The disparities (px) of the depths the parameters accept."""
         fb = self.p1[0, 0] * self.baseline
         return fb / params.max_depth_m, fb / params.min_depth_m
@@ -459,7 +462,7 @@ def gauss_newton(key_from_new: np.ndarray, residuals, extra: int = 0,
     jacobian = np.zeros((0, 6 + extra))
     for _ in range(iterations):
         r = at(np.zeros(6 + extra))
-        jacobian = np.stack([(at(e) - at(-e)) / (2 * h) for e, h in zip(np.diag(steps), steps)], axis=1)
+        jacobian = np.stack([(at(e) - at(-e)) / (2 * h) for e, h in zip(np.diag(steps), steps, strict=True)], axis=1)
         delta = np.linalg.lstsq(jacobian, -r, rcond=None)[0]
         pose, x = pose @ exp_se3(delta[:6]), x + delta[6:]
         if np.linalg.norm(delta[:6]) < 1e-9:
@@ -546,7 +549,7 @@ def match_picture(key: StereoKeyframe, new_left: np.ndarray, estimate: MotionEst
         start = key.pixels[index]
         error = np.linalg.norm(predicted_pixels(key, estimate.key_from_new)[index] - end, axis=1)
         explained = error <= params.refine_threshold_px
-    for a, b, good in zip(np.rint(start).astype(int), np.rint(end).astype(int), explained):
+    for a, b, good in zip(np.rint(start).astype(int), np.rint(end).astype(int), explained, strict=True):
         colour = (0, 200, 0) if good else (0, 0, 220)
         cv2.line(picture, (int(a[0]), int(a[1])), (int(b[0]), int(b[1])), colour, 1, cv2.LINE_AA)
         cv2.circle(picture, (int(b[0]), int(b[1])), 2, colour, -1, cv2.LINE_AA)

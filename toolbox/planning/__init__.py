@@ -69,7 +69,7 @@ __all__ = [
     "terrain_cost", "inflate_hazards", "InflatedHazards", "proximity_cost", "apply_unknown_policy",
     "UnknownPolicy", "UNKNOWN_POLICIES",
     "astar", "dijkstra_reference", "path_cost", "SearchResult",
-    "MapLayers", "blank_map", "blank_map_spanning", "resample_onto", "fuse_maps", "fuse_nearest",
+    "MapLayers", "blank_map", "blank_map_spanning", "resample_onto", "fuse_maps", "fuse_nearest", "hazards_onto",
     "enclosed_unknown", "holes_on_path", "inside_box", "outside_box", "with_hazards", "with_unknown", "FusedLayers",
     "cells_to_world", "world_to_cells", "path_length", "douglas_peucker", "segment_cells",
     "segment_is_clear", "simplify_path", "distance_to_border", "drivable_prefix", "DrivablePrefix",

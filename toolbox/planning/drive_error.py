@@ -77,7 +77,7 @@ def drive_error_profile(waypoints_xy: np.ndarray, heading_rad: float, model: Dri
     heading = float(heading_rad)
     points, headings, along, spread, segment = [waypoints[0]], [heading], [0.0], [covariance], [0]
     driven = 0.0
-    for index, (a, b) in enumerate(zip(waypoints[:-1], waypoints[1:]), start=1):
+    for index, (a, b) in enumerate(zip(waypoints[:-1], waypoints[1:], strict=True), start=1):
         length = float(np.linalg.norm(b - a))
         if length == 0:
             continue
@@ -126,7 +126,7 @@ def footprint_outline(length_m: float, width_m: float, spacing_m: float, filled:
         return np.stack(np.meshgrid(x, y), axis=-1).reshape(-1, 2)
     corners = np.array([[a, b], [-a, b], [-a, -b], [a, -b], [a, b]])
     sides = []
-    for p, q in zip(corners[:-1], corners[1:]):
+    for p, q in zip(corners[:-1], corners[1:], strict=True):
         n = max(1, math.ceil(np.linalg.norm(q - p) / spacing_m))
         sides.append(p + (q - p) * (np.arange(n)[:, None] / n))
     return np.vstack(sides)

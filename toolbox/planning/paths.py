@@ -13,8 +13,8 @@ the border of its known cells, is handed out for driving.
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 from scipy.ndimage import distance_transform_edt

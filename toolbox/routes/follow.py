@@ -30,8 +30,9 @@ so the scale rule holds unchanged).
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Callable, Protocol, Sequence
+from typing import Any, Protocol
 
 from toolbox.routes.match import MatchResult, PlaceMatcher, heading_offset
 

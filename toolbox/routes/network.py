@@ -10,8 +10,8 @@ adjustment), so the way found is the shortest drive through the network.
 from __future__ import annotations
 
 import heapq
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
-from typing import Iterable, Sequence
 
 Place = tuple[str, int]
 
@@ -86,7 +86,7 @@ def shortest_way(legs: Iterable[NetworkLeg], links: Iterable[NetworkLink], start
 def segments(path: Sequence[Place]) -> list[Segment]:
     """Places in order into stretches of one route each (a link starts a new stretch)."""
     out: list[Segment] = []
-    for a, b in zip(path[:-1], path[1:]):
+    for a, b in zip(path[:-1], path[1:], strict=True):
         if a[0] != b[0]:
             continue                                   # a link: the next stretch starts at b
         if out and out[-1].route == a[0] and out[-1].end == a[1] and (b[1] - a[1]) == (1 if not out[-1].reverse

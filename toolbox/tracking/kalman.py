@@ -37,7 +37,7 @@ class Track:
 
     @classmethod
     def start(cls, xy: np.ndarray, measurement_cov: np.ndarray, time_s: float,
-              params: TrackParams = TrackParams(), speed_sigma: float = 1.0) -> "Track":
+              params: TrackParams = TrackParams(), speed_sigma: float = 1.0) -> Track:
         """A track born at a measurement, its velocity unknown (0 with `speed_sigma` per axis)."""
         covariance = np.zeros((4, 4))
         covariance[:2, :2] = measurement_cov

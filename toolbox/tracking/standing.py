@@ -67,7 +67,7 @@ class Plane:
     gy: float = 0.0
 
     @classmethod
-    def of_rover(cls, rover_to_world: np.ndarray) -> "Plane":
+    def of_rover(cls, rover_to_world: np.ndarray) -> Plane:
         """The rover frame's z = 0 plane (its wheels' contact plane), in the world."""
         normal, origin = rover_to_world[:3, 2], rover_to_world[:3, 3]
         return cls(float(origin[0]), float(origin[1]), float(origin[2]),
