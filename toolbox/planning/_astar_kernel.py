@@ -27,8 +27,6 @@ SQRT2 = np.sqrt(2.0)
 STEP_ROWS = np.array([-1, -1, -1, 0, 0, 1, 1, 1], dtype=np.int64)
 STEP_COLS = np.array([-1, 0, 1, -1, 1, -1, 0, 1], dtype=np.int64)
 UNSEEN, CLOSED = 0, -1  # where[node]: these, or 1 + the node's heap slot while it is open
-
-
 HEAP_ARITY = 4  # children per heap node: half the levels of a binary heap, measured 10 % faster here
 # The search's array indices are cast to unsigned: numba then drops its negative-index wraparound (a
 # shift, an and and an add per access), measured 15-20 % of the search's time. They are all >= 0.
