@@ -24,12 +24,12 @@ import logging
 import threading
 import time
 from abc import ABC, abstractmethod
-from typing import TYPE_CHECKING, Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar, Generic, Protocol, TypeVar
 
 from .protocol import WrongMode
 
 if TYPE_CHECKING:
-    from .host import Host
+    from drivers.sim.clock import SimClock
 
 log = logging.getLogger("rvs.activities")
 
@@ -38,12 +38,26 @@ COMMANDS = {"hazard": ("hazard-start", "hazard-stop"), "track": ("track3d-start"
 STOP_TIMEOUT_S = 30.0         # wall seconds a stop waits for the frame in progress
 
 
-class Activity(ABC):
-    """One background loop; subclasses give `frame` and `finish`."""
+class ActivityHost(Protocol):
+    """What the loop needs of the server: its clock and its events (host.Host gives them). A protocol,
+    so this module imports nothing of the server and the device layer may import it."""
+
+    @property
+    def clock(self) -> SimClock: ...
+
+    def publish_threadsafe(self, topic: str, data: dict[str, Any]) -> None: ...
+
+
+ServerT = TypeVar("ServerT", bound=ActivityHost)
+
+
+class Activity(ABC, Generic[ServerT]):
+    """One background loop; subclasses give `frame` and `finish`. A kind names the server it needs:
+    `class HazardActivity(Activity["Host"])` sees the whole host as `self.server`."""
 
     kind: ClassVar[str]
 
-    def __init__(self, server: Host, rate_hz: float):
+    def __init__(self, server: ServerT, rate_hz: float):
         self.server = server
         self.rate_hz = float(rate_hz)
         self.frames = 0
@@ -111,9 +125,9 @@ class Activities:
     """The running activities of one server, at most one per kind."""
 
     def __init__(self) -> None:
-        self._running: dict[str, Activity] = {}
+        self._running: dict[str, Activity[Any]] = {}
 
-    def running(self, kind: str) -> Activity | None:
+    def running(self, kind: str) -> Activity[Any] | None:
         return self._running.get(kind)
 
     def require_free(self, kind: str, command: str) -> None:
@@ -123,7 +137,7 @@ class Activities:
             raise WrongMode(f"{command}: {kind} is already running ({activity.frames} frames so far); "
                             f"{COMMANDS[kind][1]} first")
 
-    def start(self, activity: Activity, command: str) -> None:
+    def start(self, activity: Activity[Any], command: str) -> None:
         self.require_free(activity.kind, command)
         self._running[activity.kind] = activity
         activity.start()

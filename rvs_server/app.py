@@ -37,9 +37,10 @@ from .config import ConfigError, Settings, load_model, read_toml, validate_secti
 from .devices import Devices, DevicesConfig
 from .dispatch import CommandSpec, Dispatcher, Module, Registry, Session
 from .files import remove_stale_temporaries, set_storage_cap
-from .jobs import JobCounter, RecoveryStore
+from .jobs import JobCounter
 from .native import NativeWorker
 from .protocol import BadRequest
+from .recovery import RecoveryStore
 from .transports.tcp import claim_tcp_port, start_tcp
 from .transports.zmq import ZmqTransport
 from .web import WebView

@@ -191,11 +191,25 @@ class Session:
     close: Callable[[], None] | None = None
 
 
+class DispatchHost(Host, Protocol):
+    """The server as the dispatcher, the transports and the immediate and control commands see it: a
+    Host with its whole dispatcher, its registry and the command defaults (app.Server)."""
+
+    @property
+    def dispatcher(self) -> Dispatcher: ...
+
+    @property
+    def registry(self) -> Registry: ...
+
+    def command_defaults(self, spec: CommandSpec) -> dict[str, Any]:
+        """A command's option defaults from its module's TOML file."""
+
+
 @dataclass
 class Call(ModuleScope):
     """What an immediate or control handler gets besides its options."""
 
-    server: Host
+    server: DispatchHost
     session: Session
     request: Request
     sink: ReplySink
@@ -207,7 +221,7 @@ class Call(ModuleScope):
 
 
 class Dispatcher:
-    def __init__(self, server: Host):
+    def __init__(self, server: DispatchHost):
         self.server = server
         self._base_mode = Mode.STANDBY  # standby | break; busy and sleep are derived
         self.sleep_until: float | None = None

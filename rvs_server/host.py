@@ -3,9 +3,15 @@ capabilities is written down once and checked by the type checker instead of pas
 
 `app.Server` implements it. A capability reaches the rest of the server only through these names,
 and through `JobContext` / `Call`, which add the command's own settings and state.
+
+This module sits below the jobs, the dispatcher and the activities (they import it, it imports none of
+them, not even for the type checker): what it shows of the dispatcher and the registry are the small
+protocols below, and `dispatch.DispatchHost` is the whole server as the dispatcher, the transports and
+the system commands see it. tests/core/test_import_directions.py keeps every circle out.
 """
 from __future__ import annotations
 
+from collections.abc import Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
@@ -17,10 +23,39 @@ if TYPE_CHECKING:
     from rvs_server.config import Settings
     from rvs_server.devices import Devices
     from rvs_server.devices.calibration import Calibration
-    from rvs_server.dispatch import CommandSpec, Dispatcher, Registry
-    from rvs_server.jobs import RecoveryStore
     from rvs_server.native import NativeWorker
     from rvs_server.products.manifests import Products
+    from rvs_server.recovery import RecoveryStore
+
+
+class RunningJob(Protocol):
+    """The job that runs, as the server's parts see it (jobs.Job)."""
+
+    @property
+    def id(self) -> str: ...
+
+    @property
+    def products(self) -> list[str]: ...
+
+
+class Dispatching(Protocol):
+    """What every part may read of the server's dispatcher (dispatch.Dispatcher gives all of it)."""
+
+    @property
+    def job(self) -> RunningJob | None: ...
+
+    @property
+    def mode(self) -> str: ...
+
+    @property
+    def sleep_until(self) -> float | None: ...
+
+
+class Commands(Protocol):
+    """What every part may read of the command registry (dispatch.Registry): the modules by name."""
+
+    @property
+    def modules(self) -> Mapping[str, object]: ...
 
 
 class Host(Protocol):
@@ -39,20 +74,21 @@ class Host(Protocol):
     devices: Devices
     recovery: RecoveryStore
     products: Products
-    dispatcher: Dispatcher
     activities: Activities
     native: NativeWorker           # the heavy native steps of jobs, in a child process (native.py)
     stopping: bool                   # a shutdown was asked for
-    registry: Registry
+
+    @property
+    def dispatcher(self) -> Dispatching: ...
+
+    @property
+    def registry(self) -> Commands: ...
 
     def settings_of(self, module: str) -> Any:
         """A module's settings (configs/<module>.toml), as last loaded or reloaded."""
 
     def state_of(self, module: str) -> Any:
         """A module's state on this server, made by its Module's `state` factory on first use."""
-
-    def command_defaults(self, spec: CommandSpec) -> dict[str, Any]:
-        """A command's option defaults from its module's TOML file."""
 
     def calibration(self) -> Calibration:
         """The calibration the maps use."""

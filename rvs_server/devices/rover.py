@@ -26,7 +26,7 @@ import math
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
-from typing import TYPE_CHECKING, ClassVar, Literal
+from typing import TYPE_CHECKING, Any, ClassVar, Literal, Protocol
 
 import numpy as np
 
@@ -41,17 +41,39 @@ from ..protocol import BadRequest, DeviceError, Timeout
 from .sharing import DeviceSharing
 
 if TYPE_CHECKING:
+    from drivers.sim.clock import SimClock
     from drivers.sim.testbed import SimulatedTestbed
-    from rvs_server.jobs import JobContext
 
 DriveMode = Literal["auto", "simulated", "gnc"]
 POSE_POLL_S = 0.5
 GROUND_RADIUS_M = 0.4   # the map's cells within this of the rover's centre carry its wheels (0.38 x 0.40 m apart)
 NO_FORWARD_CAMERA = "the forward camera is the simulated rover's body-fixed camera and the devices are real"
 
-__all__ = ["Drive", "DriveGuard", "DriveMode", "DriveStopped", "ForwardCamera", "ForwardCameraConfig", "GncDrive",
-           "Moved", "Pace", "RoverDevice",
+__all__ = ["Drive", "DriveGuard", "DriveMode", "DriveStopped", "DrivingJob", "ForwardCamera", "ForwardCameraConfig",
+           "GncDrive", "Moved", "Pace", "RoverDevice",
            "SimulatedDrive", "SunReading", "WorldEdge", "dead_reckon", "turn_and_distance"]
+
+
+class JobId(Protocol):
+    @property
+    def id(self) -> str: ...
+
+
+class DrivingJob(Protocol):
+    """What a drive and its guards need of the job that moves the rover (jobs.JobContext gives it): a
+    protocol, so the device layer imports nothing of the jobs."""
+
+    @property
+    def job(self) -> JobId: ...
+
+    @property
+    def clock(self) -> SimClock: ...
+
+    def safe_point(self) -> None: ...
+
+    def sleep(self, sim_seconds: float) -> None: ...
+
+    def publish(self, topic: str, data: dict[str, Any]) -> None: ...
 
 
 @dataclass(frozen=True)
@@ -95,7 +117,7 @@ class DriveGuard(ABC):
     name: ClassVar[str]
 
     @abstractmethod
-    def check(self, job: JobContext, pose: RoverPose, direction: int, remaining_m: float, speed_m_s: float,
+    def check(self, job: DrivingJob, pose: RoverPose, direction: int, remaining_m: float, speed_m_s: float,
               started_s: float) -> str | None:
         """Before the rover drives on from `pose` (direction +1 forward, -1 backward, remaining_m of
         this leg left, at speed_m_s, in a move begun at simulated time started_s): None to go on, or
@@ -134,11 +156,11 @@ class Drive(ABC):
         self.rover = rover
 
     @abstractmethod
-    def act(self, job: JobContext, kind: str, value: float, pace: Pace) -> Moved:
+    def act(self, job: DrivingJob, kind: str, value: float, pace: Pace) -> Moved:
         """One action: kind turn (value radians, counter-clockwise), forward or backward (metres)."""
 
     @abstractmethod
-    def waypoints(self, job: JobContext, waypoints: Sequence[Sequence[float]], start: RoverPose, pace: Pace,
+    def waypoints(self, job: DrivingJob, waypoints: Sequence[Sequence[float]], start: RoverPose, pace: Pace,
                   goal: tuple[float, float], cycle: int,
                   announce: Callable[[Sequence[float] | None], None]) -> Iterator[Moved]:
         """Drive to the waypoints from start, one Moved per part done; between two, the caller may
@@ -159,11 +181,11 @@ class SimulatedDrive(Drive):
 
     simulated = True
 
-    def act(self, job: JobContext, kind: str, value: float, pace: Pace) -> Moved:
+    def act(self, job: DrivingJob, kind: str, value: float, pace: Pace) -> Moved:
         turn, distance = action_motion(kind, value)
         return self.move(job, turn, distance, pace)
 
-    def waypoints(self, job: JobContext, waypoints: Sequence[Sequence[float]], start: RoverPose, pace: Pace,
+    def waypoints(self, job: DrivingJob, waypoints: Sequence[Sequence[float]], start: RoverPose, pace: Pace,
                   goal: tuple[float, float], cycle: int,
                   announce: Callable[[Sequence[float] | None], None]) -> Iterator[Moved]:
         for target in list(waypoints):
@@ -174,7 +196,7 @@ class SimulatedDrive(Drive):
             yield moved
             start = self.rover.pose_estimate   # the caller may have corrected it (an orient look between legs)
 
-    def move(self, job: JobContext, turn: float, distance: float, pace: Pace, start: RoverPose | None = None,
+    def move(self, job: DrivingJob, turn: float, distance: float, pace: Pace, start: RoverPose | None = None,
              incline: bool = False) -> Moved:
         """Turn, then drive (negative: backward), sample by sample in simulated time, so a guard can
         stop the rover between two samples (DriveStopped). The estimate is dead-reckoned from start
@@ -258,7 +280,7 @@ class GncDrive(Drive):
 
     simulated = False
 
-    def act(self, job: JobContext, kind: str, value: float, pace: Pace) -> Moved:
+    def act(self, job: DrivingJob, kind: str, value: float, pace: Pace) -> Moved:
         reports = self.rover.reports
         self.rover.hand_over_sensors()
         shown = math.degrees(value) if kind == "turn" else value
@@ -267,7 +289,7 @@ class GncDrive(Drive):
         self.rover.wait_for_pose(job, reports, pace.pose_timeout_s, f"the route action {kind} {shown:g}")
         return Moved(self.rover.pose_estimate, None)
 
-    def waypoints(self, job: JobContext, waypoints: Sequence[Sequence[float]], start: RoverPose, pace: Pace,
+    def waypoints(self, job: DrivingJob, waypoints: Sequence[Sequence[float]], start: RoverPose, pace: Pace,
                   goal: tuple[float, float], cycle: int,
                   announce: Callable[[Sequence[float] | None], None]) -> Iterator[Moved]:
         reports = self.rover.reports
@@ -359,7 +381,7 @@ class RoverDevice:
     def new_epoch(self) -> None:
         self._pose.epoch += 1
 
-    def wait_for_pose(self, job: JobContext, reports: int, timeout_s: float, after: str) -> None:
+    def wait_for_pose(self, job: DrivingJob, reports: int, timeout_s: float, after: str) -> None:
         """Wait (in simulated time; `break` ends it) until the GNC reports a pose after the count of
         reports was `reports`; Timeout after timeout_s, naming what it waited `after`."""
         waited = 0.0

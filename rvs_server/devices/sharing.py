@@ -21,6 +21,7 @@ import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 
+from rvs_server.activities import COMMANDS
 from rvs_server.protocol import Busy
 
 
@@ -93,7 +94,6 @@ class DeviceSharing:
 
     def claim_sentence(self, name: str) -> str:
         activity = self.claimed_by(name) or "an activity"
-        from rvs_server.activities import COMMANDS  # here: the activities module imports the devices' users
         stop = COMMANDS.get(activity, ("", f"{activity}-stop"))[1]
         return f"the {name} is steered by the {activity} activity; {stop} first"
 

@@ -14,7 +14,7 @@ from __future__ import annotations
 import math
 import threading
 import time
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from typing import TYPE_CHECKING, Any
 
 from rvs_server.activities import Activity
@@ -24,25 +24,16 @@ from toolbox.mapping import dem as dem_tools
 from toolbox.mapping.corridor import CorridorParams, CorridorView, HazardMemory, Hit, corridor_view
 from toolbox.mapping.hazard import HazardConfig
 
-from .guard import HazardGuard, causes
+from .guard import HazardGuard, Seen, causes
 from .record import FrameLog, FrameRecord, write_product
 
 if TYPE_CHECKING:
     from rvs_server.host import Host
 
-    from .commands import HazardSettings
+    from .settings import HazardSettings
 
 
-
-@dataclass(frozen=True)
-class Seen:
-    """The newest processed frame: when it was taken (simulated seconds) and from where."""
-
-    sim_s: float
-    pose: RoverPose
-
-
-class HazardActivity(Activity):
+class HazardActivity(Activity["Host"]):
     kind = "hazard"
 
     def __init__(self, server: Host, settings: HazardSettings, sensor: str, rate_hz: float,

@@ -13,18 +13,59 @@ from __future__ import annotations
 
 import math
 import time
-from typing import TYPE_CHECKING
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Protocol
 
-from rvs_server.devices.rover import DriveGuard
+from rvs_server.devices.rover import DriveGuard, DrivingJob
 from toolbox.geometry import RoverPose
 from toolbox.mapping import hazard as hazard_codes
 
 if TYPE_CHECKING:
-    from rvs_server.jobs import JobContext
+    from rvs_server.activities import ActivityHost
+    from toolbox.mapping.corridor import Hit
 
-    from .activity import HazardActivity
+    from .record import FrameLog
+    from .settings import HazardSettings
 
 WAIT_STEP_S = 0.05   # simulated seconds between two looks for a fresh frame
+
+
+@dataclass(frozen=True)
+class Seen:
+    """The newest processed frame: when it was taken (simulated seconds) and from where."""
+
+    sim_s: float
+    pose: RoverPose
+
+
+class Watch(Protocol):
+    """What the guard asks of the loop that watches the path (activity.HazardActivity): a protocol, so
+    the guard and the loop do not import each other."""
+
+    @property
+    def settings(self) -> HazardSettings: ...
+
+    @property
+    def rate_hz(self) -> float: ...
+
+    @property
+    def stop_distance(self) -> float: ...
+
+    @property
+    def frames(self) -> int: ...
+
+    @property
+    def newest(self) -> Seen | None: ...
+
+    @property
+    def log(self) -> FrameLog: ...
+
+    @property
+    def server(self) -> ActivityHost: ...
+
+    def nearest(self, pose: tuple[float, float, float], direction: int, max_distance: float) -> Hit | None: ...
+
+    def blind_reason(self, since_s: float, pose: RoverPose) -> str: ...
 
 
 def causes(code: int) -> str:
@@ -37,11 +78,11 @@ def causes(code: int) -> str:
 class HazardGuard(DriveGuard):
     name = "hazard"
 
-    def __init__(self, activity: HazardActivity):
+    def __init__(self, activity: Watch):
         self.activity = activity
         self.direction = 1          # of the drive in progress: the activity reports along it
 
-    def check(self, job: JobContext, pose: RoverPose, direction: int, remaining_m: float, speed_m_s: float,
+    def check(self, job: DrivingJob, pose: RoverPose, direction: int, remaining_m: float, speed_m_s: float,
               started_s: float) -> str | None:
         self.direction = direction
         activity = self.activity

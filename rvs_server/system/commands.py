@@ -12,7 +12,6 @@ from rvs_server import __version__
 from rvs_server.config import CommandConfig, describe_allowed, describe_default, option_name, type_label
 from rvs_server.dispatch import Call, Mode, Module, Request
 from rvs_server.files import atomic_path
-from rvs_server.jobs import UnreadableRecoverySet
 from rvs_server.protocol import (
     EVENT_TOPICS,
     BadRequest,
@@ -23,6 +22,7 @@ from rvs_server.protocol import (
     WrongMode,
     parse_line,
 )
+from rvs_server.recovery import UnreadableRecoverySet
 
 if TYPE_CHECKING:
     from rvs_server.host import Host

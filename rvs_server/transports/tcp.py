@@ -10,9 +10,9 @@ import asyncio
 import logging
 import socket
 from collections.abc import Mapping
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
-from ..dispatch import Request, Session
+from ..dispatch import DispatchHost, Request, Session
 from ..protocol import (
     LINE_END,
     MAX_LINE_BYTES,
@@ -27,9 +27,6 @@ from ..protocol import (
     parse_line,
     split_tag,
 )
-
-if TYPE_CHECKING:
-    from rvs_server.host import Host
 
 log = logging.getLogger("rvs.tcp")
 
@@ -115,7 +112,7 @@ class LineSink:
 
 
 class TextConnection(asyncio.Protocol):
-    def __init__(self, server: Host):
+    def __init__(self, server: DispatchHost):
         self.server = server
         self.transport: asyncio.Transport | None = None
         self.telnet = TelnetFilter()
@@ -245,7 +242,7 @@ def claim_tcp_port(host: str, port: int) -> socket.socket:
     return sock
 
 
-async def start_tcp(server: Host, sock: socket.socket) -> asyncio.AbstractServer:
+async def start_tcp(server: DispatchHost, sock: socket.socket) -> asyncio.AbstractServer:
     """Listen on a claimed socket (see claim_tcp_port): from now on clients are answered."""
     loop = asyncio.get_running_loop()
     return await loop.create_server(lambda: TextConnection(server), sock=sock)

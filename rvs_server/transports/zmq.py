@@ -11,16 +11,13 @@ from __future__ import annotations
 import json
 import logging
 from collections.abc import Mapping
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import zmq
 import zmq.asyncio
 
-from ..dispatch import Request, Session
+from ..dispatch import DispatchHost, Request, Session
 from ..protocol import TAG_RE, BadRequest, RvsError, parse_line
-
-if TYPE_CHECKING:
-    from rvs_server.host import Host
 
 log = logging.getLogger("rvs.zmq")
 
@@ -61,7 +58,7 @@ class ZmqSink:
 
 
 class ZmqTransport:
-    def __init__(self, server: Host):
+    def __init__(self, server: DispatchHost):
         self.server = server
         self.context = zmq.asyncio.Context()
         self.router = self.context.socket(zmq.ROUTER)

@@ -14,21 +14,18 @@ import re
 import socket
 from collections.abc import Awaitable, Callable, Mapping
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 from urllib.parse import quote
 
 from aiohttp import web
 
-from rvs_server.dispatch import Request, Session
+from rvs_server.dispatch import DispatchHost, Request, Session
 from rvs_server.protocol import RvsError
 from rvs_server.transports.tcp import claim_tcp_port
 
 from .access import allowed
 from .events import KEEPALIVE_S, EventHub, _json
 from .products import MAX_LIMIT, BadName, newest_manifests, product_file
-
-if TYPE_CHECKING:
-    from rvs_server.host import Host
 
 log = logging.getLogger("rvs.web")
 
@@ -69,7 +66,7 @@ def _error(status: int, reason: str, message: str, **headers: str) -> web.Respon
 class WebView:
     """The web port of one server: claim, start when the server is ready, publish events, close."""
 
-    def __init__(self, server: Host):
+    def __init__(self, server: DispatchHost):
         self.server = server
         self.hub = EventHub()
         self.runner: web.AppRunner | None = None
