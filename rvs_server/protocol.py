@@ -25,7 +25,7 @@ TAG_RE = re.compile(r"[A-Za-z0-9_.-]{1,32}")
 SAFE_NAME_RE = re.compile(r"[A-Za-z0-9_-][A-Za-z0-9._-]{0,127}")
 _KEY_RE = re.compile(r"[A-Za-z0-9_.-]+")
 _BARE_VALUE_RE = re.compile(r'[^\s"\\]+')
-EVENT_TOPICS = ("mode", "progress", "product", "hazard", "track", "log", "navigate")
+EVENT_TOPICS = ("mode", "progress", "product", "hazard", "track", "log", "navigate", "guard")
 
 # code -> the reasons PROTOCOL.md pairs with it
 ERROR_REASONS: dict[str, int] = {

@@ -126,6 +126,12 @@ class DriveGuard(ABC):
     def stopped(self, sentence: str, estimate: RoverPose, truth: dict | None) -> None:  # noqa: B027  optional hook
         """The rover stopped for this guard: `truth` is the simulator's view of the stop, if any."""
 
+    def swept(self, job: DrivingJob, pose: RoverPose, turn: float, distance: float,
+              unguarded: bool) -> tuple[str | None, dict[str, Any]]:
+        """Before a turn on the spot or a backward drive (`drive`): the sentence why it is refused, or
+        None, and what the reply says of the swept ground. Default: nothing to say."""
+        return None, {}
+
 
 def climb(distance: float, pitch_before: float, pitch_after: float) -> float:
     """The rise (metres) of the rover's origin over one drive segment of `distance` metres along

@@ -21,7 +21,7 @@ from rvs_server.activities import Activity
 from rvs_server.devices.frame_points import SENSOR_DEVICE, FramePoints, FrameSettings
 from toolbox.geometry import RoverPose
 from toolbox.mapping import dem as dem_tools
-from toolbox.mapping.corridor import CorridorParams, CorridorView, HazardMemory, Hit, corridor_view
+from toolbox.mapping.corridor import CorridorParams, CorridorView, HazardMemory, Hit, Swept, corridor_view
 from toolbox.mapping.hazard import HazardConfig
 
 from .guard import HazardGuard, Seen, causes
@@ -66,6 +66,10 @@ class HazardActivity(Activity["Host"]):
     def nearest(self, pose: tuple[float, float, float], direction: int, max_distance: float) -> Hit | None:
         with self._memory_lock:
             return self.memory.nearest(pose, direction, max_distance)
+
+    def swept(self, pose: tuple[float, float, float], turn: float, distance: float) -> Swept:
+        with self._memory_lock:
+            return self.memory.swept(pose, turn, distance)
 
     def blind_reason(self, since_s: float, pose: RoverPose) -> str:
         """Why no frame counts as fresh for a drive begun at since_s, standing at pose."""

@@ -14,7 +14,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 from rvs_server.devices.rover import DriveGuard, DrivingJob
 from toolbox.geometry import RoverPose
@@ -22,7 +22,7 @@ from toolbox.mapping import hazard as hazard_codes
 
 if TYPE_CHECKING:
     from rvs_server.activities import ActivityHost
-    from toolbox.mapping.corridor import Hit
+    from toolbox.mapping.corridor import Hit, Swept
 
     from .record import FrameLog
     from .settings import HazardSettings
@@ -67,6 +67,8 @@ class Watch(Protocol):
 
     def blind_reason(self, since_s: float, pose: RoverPose) -> str: ...
 
+    def swept(self, pose: tuple[float, float, float], turn: float, distance: float) -> Swept: ...
+
 
 def causes(code: int) -> str:
     """The hazard code's causes as words: 'step', 'slope and step'."""
@@ -81,10 +83,13 @@ class HazardGuard(DriveGuard):
     def __init__(self, activity: Watch):
         self.activity = activity
         self.direction = 1          # of the drive in progress: the activity reports along it
+        self.last_hit: Hit | None = None     # what the last check stopped for (None: blind, or nothing)
+        self.last_job = ""                   # its job's id, for the guard event
 
     def check(self, job: DrivingJob, pose: RoverPose, direction: int, remaining_m: float, speed_m_s: float,
               started_s: float) -> str | None:
         self.direction = direction
+        self.last_hit, self.last_job = None, job.job.id
         activity = self.activity
         settings = activity.settings
         blind = max(0.05, speed_m_s * (1.0 / activity.rate_hz + settings.latency_budget_s))
@@ -105,6 +110,7 @@ class HazardGuard(DriveGuard):
         hit = activity.nearest((pose.x, pose.y, pose.heading), direction, min(activity.stop_distance, remaining_m))
         if hit is None:
             return None
+        self.last_hit = hit
         return (f"{causes(hit.cause)} {hit.distance:.2f} m ahead at {hit.x:.2f},{hit.y:.2f} (within the stop "
                 f"distance {activity.stop_distance:.2f} m)")
 
@@ -113,3 +119,34 @@ class HazardGuard(DriveGuard):
         activity.log.stop({"seq": activity.frames, "sim_s": activity.server.clock.now(), "reason": sentence,
                            "x": estimate.x, "y": estimate.y, "heading_deg": math.degrees(estimate.heading),
                            "truth": truth})
+        self._tell("stop", estimate, self.last_hit, sentence)
+
+    def swept(self, job: DrivingJob, pose: RoverPose, turn: float, distance: float,
+              unguarded: bool) -> tuple[str | None, dict[str, Any]]:
+        """A turn on the spot or a backward drive checked, before it moves, against the ground the
+        memory holds: a remembered hazard in the swept area refuses it; so does ground no frame saw
+        (more than max_unseen_share of it), unless `unguarded`."""
+        activity = self.activity
+        swept = activity.swept((pose.x, pose.y, pose.heading), turn, distance)
+        what = "turning on the spot" if turn else "backing up"
+        sentence = None
+        if swept.hit is not None:
+            hit = swept.hit
+            sentence = (f"{what} would sweep {causes(hit.cause)} at {hit.x:.2f},{hit.y:.2f} ({hit.distance:.2f} m "
+                        f"{'from the centre' if turn else 'behind the rear edge'})")
+        elif swept.unseen > activity.settings.max_unseen_share and not unguarded:
+            sentence = (f"{what} would sweep ground no frame saw ({swept.unseen:.0%} of it; the sensor looks ahead, "
+                        f"the rear and sides have none): look there first, or drive --unguarded")
+        if sentence is not None:
+            self.last_job = job.job.id
+            self._tell("refused", pose, swept.hit, sentence)
+        return sentence, {"swept_unseen": f"{swept.unseen:.2f}"}
+
+    def _tell(self, action: str, pose: RoverPose, hit: Hit | None, sentence: str) -> None:
+        """The `guard` event (PROTOCOL.md): every subscribed client and the PUB socket, so a GNC that
+        sent the drive learns why it stopped and where the obstacle is."""
+        self.activity.server.publish_threadsafe("guard", {
+            "action": action, "job": self.last_job, "x": f"{pose.x:.3f}", "y": f"{pose.y:.3f}",
+            "heading": f"{math.degrees(pose.heading):.2f}", "distance": f"{hit.distance:.2f}" if hit else "none",
+            "hazard_x": f"{hit.x:.3f}" if hit else "none", "hazard_y": f"{hit.y:.3f}" if hit else "none",
+            "cause": causes(hit.cause) if hit else "unseen", "reason": sentence})

@@ -35,3 +35,6 @@ class HazardSettings(Settings):
     stereo_max_range_m: float = Field(4.0, gt=0, le=30, description="stereo points farther than this from the "
                                       "camera are dropped: at 480 x 270 their depth error reads as steps")
     picture_frames: int = Field(20, ge=1, le=500, description="corridor.png outlines this many last frames")
+    max_unseen_share: float = Field(0.25, ge=0, le=1, description="a turn on the spot or a backward drive is "
+                                    "refused (unless drive --unguarded) when more of the ground it sweeps than "
+                                    "this no frame saw: the sensor looks ahead, the rear and sides have none")

@@ -26,6 +26,7 @@ from pydantic import Field, model_validator
 
 from rvs_server.config import CommandConfig, SafeName, Settings
 from rvs_server.devices import ForwardCameraConfig
+from rvs_server.devices.rover import action_motion
 from rvs_server.dispatch import Call, Module
 from rvs_server.host import Host
 from rvs_server.jobs import JobContext
@@ -137,6 +138,8 @@ class DriveConfig(CommandConfig):
     forward: float | None = Field(None, gt=0, description="drive forward this far, metres")
     backward: float | None = Field(None, gt=0, description="drive backward this far, metres")
     turn: float | None = Field(None, ge=-180, le=180, description="turn on the spot, degrees counter-clockwise")
+    unguarded: bool = Field(False, description="with hazard detection running, turn or back up over ground "
+                            "no frame saw (a remembered hazard still refuses it)")
 
     @model_validator(mode="after")
     def _one_action(self) -> DriveConfig:
@@ -175,9 +178,11 @@ def drive(ctx: JobContext, cfg: DriveConfig) -> dict[str, Any]:
         if before is None:   # a restart lost the short-term memory's last image: look again
             before = state.store.add_image(route, rover.grab(), _pose_tuple(ctx.server))
     shown = f"{math.degrees(action.value):g} deg" if action.kind == "turn" else f"{action.value:g} m"
+    said = _swept_by_guard(ctx, action, cfg.unguarded)
     ctx.progress(10, f"{action.kind} {shown}")
     rover.act(action.kind, action.value)
-    reply: dict[str, Any] = {"action": action.kind, "value": cfg.turn if action.kind == "turn" else action.value}
+    reply: dict[str, Any] = {"action": action.kind, "value": cfg.turn if action.kind == "turn" else action.value,
+                             **said}
     if route is not None:
         ctx.progress(80, f"recording: the image after, into route {route}")
         after = state.store.add_image(route, rover.grab(), _pose_tuple(ctx.server))
@@ -187,6 +192,19 @@ def drive(ctx: JobContext, cfg: DriveConfig) -> dict[str, Any]:
         reply.update({"route": route, "triplet": triplet.index})
     pose = ctx.devices.rover.pose_estimate
     return {**reply, "x": f"{pose.x:.3f}", "y": f"{pose.y:.3f}", "heading": f"{math.degrees(pose.heading):.2f}"}
+
+
+def _swept_by_guard(ctx: JobContext, action: Action, unguarded: bool) -> dict[str, Any]:
+    """A turn on the spot or a backward drive asks the drive guard (hazard-start) first: refused by
+    name (400) when it would sweep a remembered hazard or, unless --unguarded, unseen ground."""
+    guard = ctx.devices.rover.guard
+    if guard is None or action.kind == "forward":
+        return {}
+    turn, distance = action_motion(action.kind, action.value)
+    sentence, said = guard.swept(ctx, ctx.devices.rover.pose_estimate, turn, distance, unguarded)
+    if sentence is not None:
+        raise BadRequest(f"drive refused: {guard.name}: {sentence}")
+    return said
 
 
 # ------------------------------------------------------------------------------------ route-record

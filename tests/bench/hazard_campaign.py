@@ -101,7 +101,7 @@ class Scene:
                 return None
             turn = math.degrees(_wrap(target - h))
             if abs(turn) >= 1.0:
-                self.command(f"drive --turn {turn:.1f}")
+                self.command(f"drive --turn {turn:.1f} --unguarded")   # the lane is chosen on the truth
         x, y, h = self.true_pose()
         return (x, y, h) if self.lane_clear(x, y, h, length) else None
 
@@ -113,7 +113,7 @@ class Scene:
         target = next((a for a in options if self.lane_clear(x, y, a, 2.0)), None)
         if target is None:
             return
-        self.command(f"drive --turn {math.degrees(_wrap(target - h)):.1f}")
+        self.command(f"drive --turn {math.degrees(_wrap(target - h)):.1f} --unguarded")   # chosen on the truth
         self.command("drive --forward 1.5")
 
     def drop(self, x: float, y: float, h: float, person: bool) -> tuple[str, str, float, float]:
@@ -219,7 +219,8 @@ def back_off(scene: Scene) -> int:
     """After an obstacle is taken away: back up 1.5 m, so the sensor sees the ground where it stood
     (the guard remembers a hazard below its view until a frame sees that ground clear again; a rock
     does not vanish, but the campaign's does). Returns the guard stops it met (0 or 1)."""
-    reply = scene.command("drive --backward 1.5")
+    # --unguarded: the campaign measures the forward guard; the rear has no sensor (PROTOCOL.md)
+    reply = scene.command("drive --backward 1.5 --unguarded")
     return int("drive stopped: hazard" in reply)
 
 

@@ -70,7 +70,7 @@ def test_fifty_connections_with_a_job_and_events(server):
         assert seen == {f"c{index}-{i}": 1 for i in range(PER_CONNECTION)}  # exactly once, own tags only
     assert len(latencies) == CONNECTIONS * PER_CONNECTION
     assert job_reply.startswith("job OK job=1 pan=119.9") and " tilt=-29.9" in job_reply
-    assert job_lines[0] == "sub OK topics=\"mode progress product hazard track log navigate\""
+    assert job_lines[0] == "sub OK topics=\"mode progress product hazard track log navigate guard\""
     assert "* EVENT mode mode=busy" in job_lines
     assert any(line.startswith("job PROGRESS") for line in job_lines)
     assert any(line.startswith("* EVENT progress job=1") for line in job_lines)

@@ -140,7 +140,9 @@ def test_route_follow_and_navigate_beside_it_on_clean_ground(server_factory, wid
     with server.connect(timeout=600) as c:
         c.command("subscribe hazard")
         assert " OK " in c.command("hazard-start")
-        assert " OK " in c.command(f"drive --turn {heading if heading <= 180 else heading - 360:g}", timeout=300)
+        # No frame has seen the ground round the start: the operator turns there on their own word.
+        assert " OK " in c.command(f"drive --turn {heading if heading <= 180 else heading - 360:g} --unguarded",
+                                   timeout=300)
         assert " OK " in c.command("route-record start --name lane", timeout=300)
         for _ in range(2):
             assert " OK " in c.command("drive --forward 1.5", timeout=300)
@@ -265,3 +267,44 @@ def test_a_sensor_fault_mid_run_makes_frames_unknown_stops_drives_and_a_reset_me
     assert summary["activity"] == "hazard" and int(summary["frames"]) > 2
     rows = list(csv.DictReader(open(server.data_dir / "products" / summary["product"] / "frames.csv")))
     assert {"unknown", "clear"} <= {r["state"] for r in rows} or {"unknown", "hazard"} <= {r["state"] for r in rows}
+
+
+def test_a_gnc_drive_over_zeromq_is_stopped_and_told_and_turns_and_backing_up_are_checked(server_factory,
+                                                                                           wide_world):
+    """The GNC's own `drive` over ZeroMQ stops short of a rock like a manual one, and the GNC's PUB
+    subscription hears the `guard` event with the rover's and the rock's places; a turn on the spot or a
+    backward drive is checked before it moves against what the frames saw."""
+    from clients.gnc import RvsBadRequest, ZmqClient
+    heading = clear_lane(wide_world, (0.0, 0.0), 4.5, 0.55)
+    c_, s_ = math.cos(math.radians(heading)), math.sin(math.radians(heading))
+    server = server_factory(configs={"world.toml": WORLD})
+    events: list = []
+    with server.connect(timeout=600) as c, \
+            ZmqClient(server.zmq, timeout=300, pub=server.pub, on_event=events.append, topics=("guard",)) as gnc:
+        assert " OK " in c.command(f"drive --turn {heading if heading <= 180 else heading - 360:g}", timeout=300)
+        assert " OK " in c.command("hazard-start --stop-distance 0.5")
+        # Where the rover stands, no frame has seen its sides or its back: a turn is refused by name.
+        refused = c.command("drive --turn 90", timeout=300)
+        assert "ERR 400 bad-request drive refused: hazard: turning on the spot would sweep ground no frame saw" \
+            in refused and "--unguarded" in refused, refused
+        rock = (2.6 * c_, 2.6 * s_)
+        assert " OK " in c.command(f"sim-rock --at {rock[0]:.3f},{rock[1]:.3f} --height 0.15")
+        with pytest.raises(RvsBadRequest) as stopped:
+            gnc.call("drive", forward=4)
+        assert "drive stopped: hazard: step" in stopped.value.message
+        deadline = time.monotonic() + 30
+        while not any(e.data.get("action") == "stop" for e in events) and time.monotonic() < deadline:
+            gnc.poll_events(0.5)
+        told = next(e.data for e in events if e.data.get("action") == "stop")
+        assert told["cause"] == "step" and float(told["distance"]) <= 0.55, told
+        assert math.dist((float(told["hazard_x"]), float(told["hazard_y"])), rock) < 0.4, told
+        where = np.array([float(told["x"]), float(told["y"])])      # on the lane, short of the rock
+        assert abs(where @ (-s_, c_)) < 0.1 and 1.2 < where @ (c_, s_) < 2.4, told
+        # Backing up over the lane the frames saw on the way is allowed, and says how much was unseen.
+        back = pairs(c.command("drive --backward 0.4", timeout=300))
+        assert float(back["swept_unseen"]) <= 0.25, back
+        # The unguarded turn goes, and the reply says how much of its circle no frame saw.
+        turned = pairs(c.command("drive --turn 90 --unguarded", timeout=300))
+        assert turned["action"] == "turn" and 0.0 <= float(turned["swept_unseen"]) <= 1.0, turned
+        c.command("hazard-stop", timeout=60)
+    assert any(e.data.get("action") == "refused" for e in events)

@@ -338,3 +338,29 @@ def test_timing_print():
     per_nearest = (time.perf_counter() - start) / 200
     print(f"\ncorridor_view {per_view * 1e3:.2f} ms on {len(points)} points ({view.spec.rows}x{view.spec.cols} cells); "
           f"HazardMemory.nearest {per_nearest * 1e3:.3f} ms")
+
+
+def test_swept_ground_of_a_turn_or_a_backward_drive_from_the_memory():
+    """What the memory says of the ground a turn on the spot or a backward drive sweeps: unseen where
+    no frame looked, clear where frames did, and the remembered rock that the turn's corners reach."""
+    terrain = flat(1.0, 0.5)
+    start = (0.0, 0.0, 0.0)
+    memory = C.HazardMemory(PARAMS)
+    assert memory.swept(start, math.radians(90), 0.0).unseen == 1.0     # nothing seen yet
+    # Frames from 2.5 m behind to the start: the ground round the start was seen ahead of the rover.
+    for i, back in enumerate(np.arange(2.5, -0.01, -0.25)):
+        pose = (-back, 0.0, 0.0)
+        memory.update(C.corridor_view(frame(terrain, pose, seed=i), pose, PARAMS))
+    turn = memory.swept(start, math.radians(90), 0.0)
+    assert turn.hit is None and turn.cells > 20 and turn.unseen < 0.5, turn
+    backward = memory.swept(start, 0.0, -0.5)
+    assert backward.hit is None and backward.unseen == 0.0, backward
+    assert memory.swept(start, 0.0, 7.0).unseen > 0.2          # past the last frame's reach: not all seen
+    # A rock beside the front corner, seen by a frame from behind: the turn reaches it, a drive past does not.
+    rock = (0.25, 0.38, 0.0)
+    pose = (-1.5, 0.0, 0.0)
+    memory.update(C.corridor_view(frame(terrain, pose, [rock], seed=99), pose, PARAMS))
+    hit = memory.swept(start, math.radians(-45), 0.0).hit
+    # The nearest hazard cell: the box or its rim.
+    assert hit is not None and hit.cause & H.STEP and math.hypot(hit.x - 0.25, hit.y - 0.38) < 0.2, hit
+    assert memory.swept(start, 0.0, -0.5).hit is None

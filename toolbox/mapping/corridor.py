@@ -79,6 +79,15 @@ class Hit:
 
 
 @dataclass(frozen=True)
+class Swept:
+    """What the memory knows of the ground a move would sweep (HazardMemory.swept)."""
+
+    hit: Hit | None   # the nearest remembered hazard in it (distance: from the body's edge, or the centre)
+    unseen: float     # the share of its cells no frame saw
+    cells: int
+
+
+@dataclass(frozen=True)
 class CorridorView:
     """One frame's local maps around the corridor (arrays on `spec`) and what lies in the corridor."""
 
@@ -201,6 +210,7 @@ class HazardMemory:
         if self.spec is None or not self._holds(view.spec):
             self.recentre(view.pose[0], view.pose[1])
         spec, code = self._grid
+        assert spec is not None   # recentred above when there was none
         target, source = _overlap_slices(view.spec, spec)
         if target is None:
             return
@@ -255,11 +265,54 @@ class HazardMemory:
                                        max_distance, p.cell)
         return _nearest_hit(spec, code, rows[inside], cols[inside], distance[inside])
 
+    def swept(self, pose: tuple[float, float, float], turn: float, distance: float) -> Swept:
+        """What the memory knows of the ground a move would sweep outside the footprint it stands on:
+        a turn on the spot (turn != 0) the disc its corners reach (radius: the half diagonal of the
+        body with its side margins); a drive (distance, negative backward) the footprint's rectangle
+        beyond its leading (or trailing) edge. Cells beyond the memory's grid count as unseen."""
+        p = self.params
+        x0, y0, heading = (float(v) for v in pose)
+        half_l, half_w = p.body_length / 2, p.half_width
+        if turn:
+            reach = math.hypot(half_l, half_w)
+            box = GridSpec.covering((x0 - reach, x0 + reach), (y0 - reach, y0 + reach), p.cell)
+        else:
+            direction = 1 if distance >= 0 else -1
+            box = _covering_grid((x0, y0), _path_axes(heading, direction), (-half_l, half_l + abs(distance)),
+                                 half_w, p.cell)
+        box = _on_lattice(box, p.cell)
+        rows, cols = np.mgrid[0:box.rows, 0:box.cols]
+        xs, ys = box.centre_of(rows.ravel(), cols.ravel())
+        c, s = math.cos(heading), math.sin(heading)
+        u, v = (xs - x0) * c + (ys - y0) * s, (ys - y0) * c - (xs - x0) * s
+        body = (np.abs(u) <= half_l) & (np.abs(v) <= p.body_width / 2)       # where it stands now
+        if turn:
+            inside = (np.hypot(xs - x0, ys - y0) <= reach) & ~body
+            along = np.hypot(xs - x0, ys - y0)
+        else:
+            forward = u * (1 if distance >= 0 else -1)
+            inside = (forward > half_l) & (forward <= half_l + abs(distance)) & (np.abs(v) <= half_w)
+            along = forward - half_l
+        xs, ys, along = xs[inside], ys[inside], along[inside]
+        spec, code = self._grid
+        codes = np.full(len(xs), H.UNKNOWN, dtype=np.uint8)
+        if spec is not None:
+            row, col, known = spec.cell_of(xs, ys)
+            codes[known] = code[row[known], col[known]]
+        hazard = H.is_hazard(codes)
+        hit = None
+        if hazard.any():
+            i = int(np.flatnonzero(hazard)[np.argmin(along[hazard])])
+            hit = Hit(float(along[i]), float(xs[i]), float(ys[i]), int(codes[i]))
+        unseen = float(np.mean(codes == H.UNKNOWN)) if len(codes) else 0.0
+        return Swept(hit, unseen, len(codes))
+
     def _blank(self) -> np.ndarray:
         return np.full((self.cells, self.cells), H.UNKNOWN, dtype=np.uint8)
 
     def _holds(self, spec: GridSpec) -> bool:
         own = self.spec
+        assert own is not None   # asked only once the memory has a grid
         tol = 1e-6 * own.cell
         return (spec.x_range[0] >= own.x_range[0] - tol and spec.x_range[1] <= own.x_range[1] + tol
                 and spec.y_range[0] >= own.y_range[0] - tol and spec.y_range[1] <= own.y_range[1] + tol)
@@ -276,13 +329,20 @@ def _path_axes(heading: float, direction: int) -> tuple[float, float]:
     return direction * math.cos(heading), direction * math.sin(heading)
 
 
-def _covering_grid(origin, axes, u_range, half_width, cell) -> GridSpec:
+def _covering_grid(origin: tuple[float, float], axes: tuple[float, float], u_range: tuple[float, float],
+                   half_width: float, cell: float) -> GridSpec:
     """The cell-aligned world grid covering the path-frame rectangle u in u_range, |v| <= half_width."""
     (x0, y0), (c, s) = origin, axes
     u = np.array([u_range[0], u_range[0], u_range[1], u_range[1]])
     v = np.array([-half_width, half_width, -half_width, half_width])
     xs, ys = x0 + u * c - v * s, y0 + u * s + v * c
     return GridSpec.covering((xs.min(), xs.max()), (ys.min(), ys.max()), cell)
+
+
+def _on_lattice(spec: GridSpec, cell: float) -> GridSpec:
+    """The grid moved onto the world's cell lattice (origin a multiple of the cell), one cell larger."""
+    col0, row0 = math.floor(spec.origin_x / cell), math.floor(spec.origin_y / cell)
+    return GridSpec(col0 * cell, row0 * cell, cell, spec.rows + 1, spec.cols + 1)
 
 
 def _nearest_hit(spec: GridSpec, code: np.ndarray, rows: np.ndarray, cols: np.ndarray,

@@ -15,7 +15,7 @@
   const HAZARDS = 100;            // hazard detections kept on the map
   const TRACK = 200;              // tracked target positions kept
   const PATH_POINTS = 5000;       // points per path
-  const TOPICS = ["mode", "progress", "product", "navigate", "hazard", "track", "log", "dropped"];
+  const TOPICS = ["mode", "progress", "product", "navigate", "hazard", "guard", "track", "log", "dropped"];
 
   // ---------------------------------------------------------------------------------- requests
   function url(path) {  // the page's token goes on to every request it makes
