@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import functools
 import ipaddress
 import logging
 import os
@@ -20,20 +21,20 @@ from collections.abc import Awaitable, Mapping
 from dataclasses import dataclass
 from logging.handlers import RotatingFileHandler
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, cast
 
 import zmq
-from pydantic import Field, ValidationError
+from pydantic import ValidationError
 
 from drivers.sim.clock import SimClock
 from drivers.sim.config import WorldConfig
 from rvs_server.devices.calibration import Calibration, CalibrationConfig, build_calibration
 from rvs_server.products.manifests import Products
-from rvs_server.products.retention import StorageSettings, prune
+from rvs_server.products.retention import prune
 
 from . import __version__
 from .activities import Activities
-from .config import ConfigError, Settings, load_model, read_toml, validate_section
+from .config import ConfigError, load_model, read_toml, validate_section
 from .devices import Devices, DevicesConfig
 from .dispatch import CommandSpec, Dispatcher, Module, Registry, Session
 from .files import remove_stale_temporaries, set_storage_cap
@@ -41,37 +42,15 @@ from .jobs import JobCounter
 from .native import NativeWorker
 from .protocol import BadRequest
 from .recovery import RecoveryStore
+from .server_config import ServerConfig
 from .transports.tcp import claim_tcp_port, start_tcp
 from .transports.zmq import ZmqTransport
 from .web import WebView
 
+if TYPE_CHECKING:
+    from pydantic_core import InitErrorDetails
+
 log = logging.getLogger("rvs")
-
-
-class ServerConfig(Settings):
-    """configs/server.toml; the command-line options override it."""
-
-    host: str = "127.0.0.1"
-    port: int = Field(7400, ge=0, le=65535)
-    zmq_port: int = Field(7401, ge=0, le=65534, description="ROUTER; the PUB socket is on zmq_port + 1")
-    web_port: int = Field(7403, ge=0, le=65535, description="the web view (HTTP, rvs_server/web); 0 turns it off")
-    data_dir: str = "./data"
-    shared_dir: str = Field("", description="where logbook copies the log; default DATA_DIR/shared")
-    token_file: str | None = None
-    sim_speed: float = Field(1.0, gt=0, le=10000, description="simulated seconds per wall second")
-    break_timeout_s: float = Field(30.0, gt=0, description="how long break waits for a safe point")
-    quit_timeout_s: float = Field(30.0, gt=0, description="how long quit waits for the job to stop")
-    log_level: str = Field("INFO", pattern="^(DEBUG|INFO|WARNING|ERROR)$")
-    log_file_max_mb: float = Field(10.0, gt=0, le=10_000, description="a log file rotates at this size")
-    log_files_kept: int = Field(5, ge=2, le=1000, description="log files kept in DATA_DIR/logs, all runs together")
-    storage: StorageSettings = Field(default_factory=StorageSettings,
-                                     description="[storage]: the retention rule and the storage cap")
-    native_worker: bool = Field(True, description="run the heavy native steps of jobs (COLMAP, ICP, gridding) in a "
-                                "supervised child process; false: in the job's thread, where a crash there ends the "
-                                "server (the behaviour before the worker, kept for comparison)")
-    worker_memory_mb: int = Field(6144, ge=0, description="address space the native worker may take (MiB; it "
-                                  "imports ~1.6 GB of libraries); past it the step ends, the worker is restarted; "
-                                  "0: no limit")
 
 
 @dataclass(frozen=True)
@@ -159,7 +138,8 @@ def _validate_defaults(path: Path, spec: CommandSpec, table: dict[str, Any]) -> 
         real = [e for e in exc.errors() if e["type"] != "missing"]
         if real:
             raise ConfigError(describe_validation_error(
-                ValidationError.from_exception_data(exc.title, real), spec.config, f"{path} [{spec.name}]",
+                ValidationError.from_exception_data(exc.title, cast("list[InitErrorDetails]", real)), spec.config,
+                f"{path} [{spec.name}]",
                 name_of=lambda loc: "field " + ".".join(str(p) for p in loc))) from None
 
 
@@ -228,7 +208,7 @@ class Server:
         self.log_path = self._start_log()
         self._loop: asyncio.AbstractEventLoop | None = None
         self._stopped: asyncio.Event | None = None
-        self._tcp: asyncio.AbstractServer | None = None
+        self._tcp: asyncio.Server | None = None
         self._zmq_task: asyncio.Future | None = None
         self._start_task: asyncio.Future | None = None
         self._opening: asyncio.Future | None = None  # devices being opened, in a worker thread
@@ -551,7 +531,7 @@ def main(argv: list[str] | None = None) -> int:
     async def run() -> None:
         loop = asyncio.get_running_loop()
         for sig in (signal.SIGINT, signal.SIGTERM):
-            loop.add_signal_handler(sig, lambda s=sig: _on_signal(server, s))
+            loop.add_signal_handler(sig, functools.partial(_on_signal, server, sig))
         signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT, signal.SIGTERM})
         await server.run()
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 import difflib
 import tomllib
 import typing
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any, Generic, Literal, TypeVar
@@ -111,7 +111,8 @@ def type_label(info: FieldInfo) -> str:
 
 def allowed_range(info: FieldInfo) -> str:
     """The bounds of a numeric field as text, e.g. `0.1..150` or `> 0`; empty when unbounded."""
-    lo = hi = None
+    lo: Any = None
+    hi: Any = None
     lo_open = hi_open = False
     for item in _metadata(info):
         if isinstance(item, annotated_types.Ge):
@@ -155,8 +156,12 @@ def describe_default(info: FieldInfo) -> str:
     return "none" if default is None else format_value(default)
 
 
+def _dotted(loc: tuple[int | str, ...]) -> str:
+    return ".".join(str(p) for p in loc)
+
+
 def describe_validation_error(exc: ValidationError, model: type[BaseModel], where: str,
-                              name_of=lambda loc: ".".join(str(p) for p in loc)) -> str:
+                              name_of: Callable[[tuple[int | str, ...]], str] = _dotted) -> str:
     """One sentence per problem: where, the field, the value, what is wrong and what is allowed."""
     problems = []
     for err in exc.errors(include_url=False):
@@ -221,7 +226,10 @@ def read_toml(path: Path) -> dict[str, Any]:
         raise ConfigError(f"{path}: cannot read: {exc.strerror}") from None
 
 
-def validate_section(model: type[Settings], data: Mapping[str, Any], where: str) -> Settings:
+ModelT = TypeVar("ModelT", bound=BaseModel)
+
+
+def validate_section(model: type[ModelT], data: Mapping[str, Any], where: str) -> ModelT:
     try:
         return model.model_validate(dict(data))
     except ValidationError as exc:
@@ -229,7 +237,7 @@ def validate_section(model: type[Settings], data: Mapping[str, Any], where: str)
             exc, model, where, name_of=lambda loc: "field " + ".".join(str(p) for p in loc))) from None
 
 
-def load_model(path: Path, model: type[Settings], overrides: Mapping[str, Any] | None = None) -> Settings:
+def load_model(path: Path, model: type[ModelT], overrides: Mapping[str, Any] | None = None) -> ModelT:
     """Load one TOML file into a model; values in `overrides` (from the command line) win.
 
     The file is validated on its own first, so a bad value in it is reported even when the command

@@ -26,7 +26,7 @@ from rvs_server.native import WorkerDied
 
 from .config import CommandConfig, Settings, bind_tokens, build_config, option_name, type_label
 from .host import Host, ModuleScope
-from .jobs import Job, JobContext, JobInterrupted, RecoverySet
+from .jobs import Job, JobContext, JobCounter, JobInterrupted
 from .products import retention
 from .protocol import (
     Busy,
@@ -42,6 +42,7 @@ from .protocol import (
     UnknownCommand,
     WrongMode,
 )
+from .recovery import RecoverySet
 
 log = logging.getLogger("rvs.dispatch")
 
@@ -129,10 +130,12 @@ class Module:
             return handler
         return register
 
-    def job(self, name: str, config: type[CommandConfig] = NoOptions, **options: Any):
+    def job(self, name: str, config: type[CommandConfig] = NoOptions,
+            **options: Any) -> Callable[[Callable[..., Any]], Callable[..., Any]]:
         return self.command(name, config, kind="job", **options)
 
-    def immediate(self, name: str, config: type[CommandConfig] = NoOptions, **options: Any):
+    def immediate(self, name: str, config: type[CommandConfig] = NoOptions,
+                  **options: Any) -> Callable[[Callable[..., Any]], Callable[..., Any]]:
         return self.command(name, config, kind="immediate", **options)
 
 
@@ -200,6 +203,12 @@ class DispatchHost(Host, Protocol):
 
     @property
     def registry(self) -> Registry: ...
+
+    @property
+    def job_counter(self) -> JobCounter: ...
+
+    @property
+    def sessions(self) -> set[Session]: ...
 
     def command_defaults(self, spec: CommandSpec) -> dict[str, Any]:
         """A command's option defaults from its module's TOML file."""
@@ -422,9 +431,9 @@ class Dispatcher:
         except WorkerDied as exc:
             # The server lives on; the step can be tried again with `continue` (native.py).
             keep_reason = "worker-died" if rset is not None else None
-            kept = f"recovery set kept; {self._stopped_message(job, 'stopped', rset)}" if rset is not None \
+            stopped = f"recovery set kept; {self._stopped_message(job, 'stopped', rset)}" if rset is not None \
                 else self._stopped_message(job, "stopped", None)
-            raise InternalError(f"{exc}; {kept}", data=self._recovery_data(rset)) from None
+            raise InternalError(f"{exc}; {stopped}", data=self._recovery_data(rset)) from None
         except RvsError:
             raise
         except Exception as exc:

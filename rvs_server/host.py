@@ -20,12 +20,12 @@ if TYPE_CHECKING:
 
     from drivers.sim.clock import SimClock
     from rvs_server.activities import Activities
-    from rvs_server.config import Settings
     from rvs_server.devices import Devices
     from rvs_server.devices.calibration import Calibration
     from rvs_server.native import NativeWorker
     from rvs_server.products.manifests import Products
     from rvs_server.recovery import RecoveryStore
+    from rvs_server.server_config import ServerConfig
 
 
 class RunningJob(Protocol):
@@ -65,10 +65,9 @@ class Host(Protocol):
     config_dir: Path
     data_dir: Path
     shared_dir: Path
-    settings: Settings             # server.toml
+    settings: ServerConfig         # server.toml
     token: str | None
     started: float                   # time.monotonic() at start
-    log_path: Path | None
     log_handlers: list[logging.Handler]
     clock: SimClock
     devices: Devices
@@ -77,6 +76,9 @@ class Host(Protocol):
     activities: Activities
     native: NativeWorker           # the heavy native steps of jobs, in a child process (native.py)
     stopping: bool                   # a shutdown was asked for
+
+    @property
+    def log_path(self) -> Path | None: ...
 
     @property
     def dispatcher(self) -> Dispatching: ...

@@ -25,3 +25,9 @@ def run_tool(*args: str, timeout: float) -> subprocess.CompletedProcess[str]:
 def test_ruff_finds_nothing():
     result = run_tool("ruff", "check", "--no-cache", "--output-format", "full", *LINTED, timeout=120)
     assert result.returncode == 0, f"ruff check {' '.join(LINTED)}:\n{result.stdout}{result.stderr}"
+
+
+def test_mypy_finds_nothing():
+    """The files, the strictness and the libraries read as untyped are pyproject.toml's [tool.mypy]."""
+    result = run_tool("mypy", "--no-incremental", "--no-error-summary", "--show-error-codes", timeout=900)
+    assert result.returncode == 0, f"mypy (pyproject.toml [tool.mypy]):\n{result.stdout}{result.stderr}"

@@ -76,7 +76,8 @@ def project(points_camera: np.ndarray, intrinsics: Intrinsics) -> np.ndarray:
 
 
 @lru_cache(maxsize=16)
-def _ray_directions(width, height, fx, fy, cx, cy, k1, k2) -> np.ndarray:
+def _ray_directions(width: int, height: int, fx: float, fy: float, cx: float, cy: float, k1: float,
+                    k2: float) -> np.ndarray:
     u, v = np.meshgrid(np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64))
     x, y = undistort_normalised((u - cx) / fx, (v - cy) / fy, k1, k2)
     directions = np.stack([x, y, np.ones_like(x)], axis=-1)
@@ -86,7 +87,7 @@ def _ray_directions(width, height, fx, fy, cx, cy, k1, k2) -> np.ndarray:
     return directions
 
 
-def undistort_normalised(xd: np.ndarray, yd: np.ndarray, k1: float, k2: float):
+def undistort_normalised(xd: np.ndarray, yd: np.ndarray, k1: float, k2: float) -> tuple[np.ndarray, np.ndarray]:
     """Invert x_d = x (1 + k1 r^2 + k2 r^4) by fixed-point iteration (as OpenCV's undistortPoints)."""
     x, y = xd.copy(), yd.copy()
     if k1 == 0 and k2 == 0:

@@ -20,6 +20,7 @@ A pose named `a_to_b` maps points in frame a to frame b: p_b = a_to_b @ p_a.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -57,7 +58,8 @@ def rpy_of(rotation: np.ndarray) -> tuple[float, float, float]:
 
 
 # ---------------------------------------------------------------------------------- rigid poses
-def rigid(rotation: np.ndarray | None = None, translation=(0.0, 0.0, 0.0)) -> np.ndarray:
+def rigid(rotation: np.ndarray | None = None,
+          translation: Sequence[float] | np.ndarray = (0.0, 0.0, 0.0)) -> np.ndarray:
     """4x4 pose from a 3x3 rotation (identity if None) and a translation."""
     pose = np.eye(4)
     if rotation is not None:
@@ -123,14 +125,16 @@ class SensorMount:
     camera_to_head: np.ndarray
 
     @classmethod
-    def from_offsets(cls, ptu_position, position, rotation_rpy_deg=(0.0, 0.0, 0.0)) -> SensorMount:
+    def from_offsets(cls, ptu_position: Sequence[float], position: Sequence[float],
+                     rotation_rpy_deg: Sequence[float] = (0.0, 0.0, 0.0)) -> SensorMount:
         """From a calibration's position (head frame, m) and small rotation (roll, pitch, yaw in
         degrees, applied about the head axes) away from looking straight along head x."""
         rotation = rotation_rpy(*np.radians(rotation_rpy_deg)) @ CAMERA_AXES_IN_HEAD
-        return cls(tuple(float(v) for v in ptu_position), rigid(rotation, position))
+        x, y, z = (float(v) for v in ptu_position)
+        return cls((x, y, z), rigid(rotation, position))
 
 
-def head_to_rover(pan: float, tilt: float, ptu_position) -> np.ndarray:
+def head_to_rover(pan: float, tilt: float, ptu_position: Sequence[float] | np.ndarray) -> np.ndarray:
     """4x4 head-to-rover pose for PTU angles (radians): positive pan right, positive tilt up."""
     return rigid(rotation_z(-pan) @ rotation_y(-tilt), ptu_position)
 
@@ -144,7 +148,7 @@ def camera_to_world(pose: RoverPose, mount: SensorMount, pan: float, tilt: float
     return pose.to_world() @ camera_to_rover(mount, pan, tilt)
 
 
-def direction_of(pan, tilt) -> np.ndarray:
+def direction_of(pan: float | np.ndarray, tilt: float | np.ndarray) -> np.ndarray:
     """Unit vectors (..., 3), in the frame the PTU is mounted in, that the head's x axis points
     along at these PTU angles (radians)."""
     pan, tilt = np.broadcast_arrays(np.asarray(pan, np.float64), np.asarray(tilt, np.float64))

@@ -12,6 +12,7 @@ unknown, as the maps produce them and the planners read them.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any, overload
 
 import numpy as np
 
@@ -63,7 +64,14 @@ class GridSpec:
         ys = self.origin_y + (np.arange(self.rows) + 0.5) * self.cell
         return xs, ys
 
-    def centre_of(self, row: np.ndarray, col: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    @overload
+    def centre_of(self, row: int, col: int) -> tuple[float, float]: ...
+
+    @overload
+    def centre_of(self, row: np.ndarray, col: np.ndarray) -> tuple[np.ndarray, np.ndarray]: ...
+
+    def centre_of(self, row: np.ndarray | int, col: np.ndarray | int) -> tuple[Any, Any]:
+        """World x, y of cell centres: floats for one cell, arrays for arrays of them."""
         return (self.origin_x + (np.asarray(col) + 0.5) * self.cell,
                 self.origin_y + (np.asarray(row) + 0.5) * self.cell)
 

@@ -3,6 +3,7 @@ side by side, and tiles in a contact sheet. Every family's overview and contact 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import cv2
 import numpy as np
@@ -19,15 +20,16 @@ class Canvas:
         self.factor = max(1, int(math.ceil(size / max(rgb.shape[:2]))))
         self.image = np.ascontiguousarray(upscale(np.flipud(rgb), size))
 
-    def pixel(self, xy) -> tuple[int, int]:
+    def pixel(self, xy: Sequence[float] | np.ndarray) -> tuple[int, int]:
         col = (xy[0] - self.spec.origin_x) / self.spec.cell * self.factor
         row = (self.spec.rows - (xy[1] - self.spec.origin_y) / self.spec.cell) * self.factor
         return int(round(col)), int(round(row))
 
-    def pixels(self, points) -> np.ndarray:
+    def pixels(self, points: Sequence[Sequence[float]] | np.ndarray) -> np.ndarray:
         return np.array([self.pixel(p) for p in points], np.int32)
 
-    def line(self, points, colour, width: int = 2, antialiased: bool = True) -> None:
+    def line(self, points: Sequence[Sequence[float]] | np.ndarray, colour: tuple[int, ...], width: int = 2,
+             antialiased: bool = True) -> None:
         if len(points) > 1:
             cv2.polylines(self.image, [self.pixels(points)], False, colour, width,
                           cv2.LINE_AA if antialiased else cv2.LINE_8)

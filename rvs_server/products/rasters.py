@@ -84,6 +84,7 @@ def geotiff_grid(path: Path) -> GridSpec | None:
     TIFF without them."""
     with tifffile.TiffFile(path) as tif:
         page = tif.pages[0]
+        assert isinstance(page, tifffile.TiffPage)   # the first page is never a TiffFrame
         if 33550 not in page.tags or 33922 not in page.tags:
             return None
         scale, tie = page.tags[33550].value, page.tags[33922].value
@@ -96,6 +97,7 @@ def read_geotiff(path: Path) -> tuple[np.ndarray, GridSpec]:
     """Inverse of write_geotiff: the grid values (rows northwards) and their GridSpec."""
     with tifffile.TiffFile(path) as tif:
         page = tif.pages[0]
+        assert isinstance(page, tifffile.TiffPage)   # the first page is never a TiffFrame
         values = page.asarray()
         scale = page.tags[33550].value
         tie = page.tags[33922].value

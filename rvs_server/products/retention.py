@@ -28,10 +28,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from pydantic import Field
-
 from rvs_server import files
-from rvs_server.config import Settings
+from rvs_server.server_config import StorageSettings
 
 if TYPE_CHECKING:
     from rvs_server.host import Host
@@ -40,15 +38,6 @@ log = logging.getLogger("rvs.storage")
 
 GIB = 1024 ** 3
 DAY_S = 86400.0
-
-
-class StorageSettings(Settings):
-    """server.toml `[storage]`: the retention rule and the storage cap. 0 turns a limit off."""
-
-    max_gib: float = Field(0.0, ge=0, description="keep at most this many GiB of products (oldest go first)")
-    max_days: float = Field(0.0, ge=0, description="remove products older than this many days")
-    cap_gib: float = Field(0.0, ge=0, description="a write that would take the products past this many GiB "
-                                                  "fails as on a full disk (ERR 507); 0: only the disk limits")
 
 
 @dataclass
@@ -125,8 +114,9 @@ def protected_products(server: Host, infos: list[ProductInfo] | None = None) -> 
             protect(name, f"recovery:{rset.job}")
     # A running job: the products it has opened so far.
     job = server.dispatcher.job
-    for name in getattr(job, "products", ()) if job is not None else ():
-        protect(name, f"job:{job.id}")
+    if job is not None:
+        for name in job.products:
+            protect(name, f"job:{job.id}")
     # Routes (data/routes): each finished route's own product, route-NAME (or route-NAME-N).
     for route in _route_names(server.data_dir / "routes"):
         pattern = re.compile(re.escape(f"route-{route}") + r"(-\d+)?")
@@ -299,7 +289,7 @@ def free_space(path: Path, cap_root: Path | None = None, cap_bytes: int = 0) -> 
     return free
 
 
-def enospc_of(exc: BaseException) -> OSError | None:
+def enospc_of(exc: BaseException | None) -> OSError | None:
     """The ENOSPC OSError in `exc` or what caused it, if any."""
     seen = set()
     while exc is not None and id(exc) not in seen:

@@ -125,8 +125,9 @@ class TextConnection(asyncio.Protocol):
     # -- asyncio.Protocol ----------------------------------------------------------------------
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
-        self.transport = transport  # type: ignore[assignment]
-        self.transport.set_write_buffer_limits(high=REPLY_BUFFER_LIMIT)
+        assert isinstance(transport, asyncio.Transport)
+        self.transport = transport
+        transport.set_write_buffer_limits(high=REPLY_BUFFER_LIMIT)
         peer = transport.get_extra_info("peername")
         name = f"tcp {peer[0]}:{peer[1]}" if isinstance(peer, tuple) else "tcp"
         self.session = Session(name=name, send_event=self.send_event, close=self.close)
@@ -196,6 +197,7 @@ class TextConnection(asyncio.Protocol):
         except RvsError as exc:
             self.send_line(format_error(tag, exc))
             return
+        assert self.session is not None   # connection_made comes first
         self.server.dispatcher.submit(Request.from_line(parsed), self.session, LineSink(self, tag))
 
     def _refuse(self, head: bytes, reason: str, message: str) -> None:
@@ -242,7 +244,7 @@ def claim_tcp_port(host: str, port: int) -> socket.socket:
     return sock
 
 
-async def start_tcp(server: DispatchHost, sock: socket.socket) -> asyncio.AbstractServer:
+async def start_tcp(server: DispatchHost, sock: socket.socket) -> asyncio.Server:
     """Listen on a claimed socket (see claim_tcp_port): from now on clients are answered."""
     loop = asyncio.get_running_loop()
     return await loop.create_server(lambda: TextConnection(server), sock=sock)

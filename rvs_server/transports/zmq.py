@@ -64,8 +64,8 @@ class ZmqTransport:
         self.router = self.context.socket(zmq.ROUTER)
         # Replies and events are sent from the event loop without awaiting: a synchronous view of
         # the same sockets makes a full queue an immediate, catchable error instead of a lost future.
-        self._router_out = zmq.Socket.shadow(self.router.underlying)
-        self.pub = zmq.Context.shadow(self.context.underlying).socket(zmq.PUB)
+        self._router_out: zmq.Socket[bytes] = zmq.Socket.shadow(self.router.underlying)
+        self.pub: zmq.Socket[bytes] = zmq.Context.shadow(self.context.underlying).socket(zmq.PUB)
         for sock in (self.router, self.pub):
             sock.setsockopt(zmq.LINGER, 200)
         self.sessions: dict[bytes, Session] = {}
@@ -81,8 +81,8 @@ class ZmqTransport:
         else:
             self.router.bind(f"tcp://{host}:{port}")
             self.pub.bind(f"tcp://{host}:{port + 1}")
-        self.router_endpoint = self.router.getsockopt(zmq.LAST_ENDPOINT).decode()
-        self.pub_endpoint = self.pub.getsockopt(zmq.LAST_ENDPOINT).decode()
+        self.router_endpoint = self.router.getsockopt_string(zmq.LAST_ENDPOINT)
+        self.pub_endpoint = self.pub.getsockopt_string(zmq.LAST_ENDPOINT)
 
     async def serve(self) -> None:
         while True:

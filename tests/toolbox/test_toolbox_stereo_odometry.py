@@ -154,6 +154,27 @@ def test_guided_tracks_follow_the_predicted_motion():
     np.testing.assert_allclose(tracked - pixels[index], [[-4.0, 0.0]] * len(index), atol=0.1)
 
 
+def test_a_warped_view_is_seen_by_the_keyframe_camera():
+    """The type checker found the warped view's keyframe made with no camera (None where Intrinsics
+    belongs), so anything that asked it for its camera or its image size would have failed."""
+    camera = ideal_rig().left
+    view = S.warped_view(texture(7), np.eye(3), PARAMS, camera)
+    assert view.camera == camera and view.image_size == (640, 480) and len(view.pixels) > 0
+
+
+def test_guided_tracks_through_a_homography_need_the_warped_image():
+    """A homography without the warped image it made is a caller's mistake, said as such (it reached
+    OpenCV as None before)."""
+    camera = ideal_rig().left
+    image = texture(7)
+    pixels, descriptors = F.bucketed_features(image, 300, (4, 4))
+    rays = np.column_stack([(pixels[:, 0] - camera.cx) / camera.fx, (pixels[:, 1] - camera.cy) / camera.fy,
+                            np.ones(len(pixels))])
+    key = S.StereoKeyframe(pixels, descriptors, 5.0 * rays, camera, image)
+    with pytest.raises(ValueError, match="warped image"):
+        S.guided_tracks(key, image, np.eye(4), PARAMS, homography=np.eye(3))
+
+
 def test_pnp_ransac_recovers_the_motion_despite_outliers():
     truth, points_key, pixels_new, rng = synthetic_motion()
     pixels_new = pixels_new + rng.normal(0, 0.2, pixels_new.shape)

@@ -2,6 +2,7 @@
 the centre from the legs, the constant-velocity filter's convergence, its gate and its coasting."""
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
@@ -62,6 +63,16 @@ def test_a_suited_figure_is_a_person_and_a_boulder_of_its_height_is_not(rng):
     pebble = candidates(np.concatenate([ground(rng, (5, 0)), boulder(rng, height=0.5, diameter=0.5)]),
                         np.zeros(2), plane)
     assert all(c.terms["height"] == 0.0 for c in pebble)          # too low to be anyone standing
+
+
+def test_the_gate_answers_a_plain_bool():
+    """The type checker found in_gate answering numpy's bool for a detection within min_gate_m (json
+    refuses that one): a plain bool either way."""
+    track = Track.start(np.array([1.0, 2.0]), np.eye(2) * 0.01, 0.0, TrackParams())
+    for xy in ([1.0, 2.0], [1.0, 2.5], [1.0, 9.0]):
+        answer = track.in_gate(np.array(xy), np.eye(2) * 0.01)
+        assert type(answer) is bool
+        assert json.loads(json.dumps({"in_gate": answer})) == {"in_gate": answer}
 
 
 def test_the_filter_follows_a_walker_and_its_gate_keeps_a_boulder_out(rng):

@@ -17,6 +17,7 @@ hop) -> world (x east, y north, z up) by the hop's heading from the sun sensor a
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 
@@ -119,7 +120,8 @@ def process_hop(centres_sfm: np.ndarray, timestamps: np.ndarray, cloud_sfm: np.n
                 heading: float, previous_cloud: np.ndarray | None = None, goal_heading: float | None = None,
                 goal_xy: np.ndarray | None = None, gravity: float = MOON_GRAVITY,
                 gravity_prior: np.ndarray | None = None, landing: LandingParams = LandingParams(),
-                icp_voxel: float = 0.05, icp_initial_distance: float = 0.6, icp_dof: str = "6") -> HopResult:
+                icp_voxel: float = 0.05, icp_initial_distance: float = 0.6,
+                icp_dof: Literal["6", "yaw"] = "6") -> HopResult:
     """One hop, from its SfM reconstruction to the next target (paper Fig 3).
 
     centres_sfm / timestamps: the hop's centre-of-mass positions (SfM frame) and frame times;

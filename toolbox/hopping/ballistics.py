@@ -23,7 +23,8 @@ from toolbox.hopping.parabola import MOON_GRAVITY
 CHI2_2D_95 = 2.4477  # sqrt of the 95 % quantile of chi-square with 2 dof: a 95 % ellipse in sigmas
 
 
-def hop_range(speed: float | np.ndarray, elevation: float | np.ndarray, gravity: float = MOON_GRAVITY):
+def hop_range(speed: float | np.ndarray, elevation: float | np.ndarray,
+              gravity: float = MOON_GRAVITY) -> np.ndarray:
     """Eq 14: the distance of a hop on flat ground, d = v^2 sin(2 theta) / g."""
     return np.asarray(speed) ** 2 * np.sin(2 * np.asarray(elevation)) / gravity
 

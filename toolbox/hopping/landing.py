@@ -31,6 +31,7 @@ above the ground. Choices the paper leaves open, documented where they are made:
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import cv2
 import numpy as np
@@ -220,7 +221,8 @@ def goal_map(spec: GridSpec, start_xy: np.ndarray, min_distance: float, max_dist
     return np.where(reachable, np.clip(value, 0.0, 1.0), 0.0)
 
 
-def candidate_ellipse(start_xy: np.ndarray, target_xy: np.ndarray, params: LandingParams) -> LandingEllipse:
+def candidate_ellipse(start_xy: np.ndarray, target_xy: np.ndarray | tuple[float, float],
+                      params: LandingParams) -> LandingEllipse:
     """The landing error ellipse of a hop to target on flat ground (the paper's assumption)."""
     distance = float(np.hypot(*(np.asarray(target_xy) - start_xy)))
     elevation, speed = _flat_launch(distance, params)
@@ -232,6 +234,7 @@ def _flat_launch(distance: float, params: LandingParams) -> tuple[float, float]:
     if params.elevation is not None:
         return params.elevation, speed_for_target(distance, 0.0, params.elevation, params.gravity)
     # Fixed speed: the steep elevation for this distance, sin(2 theta) = g d / v^2.
+    assert params.speed is not None   # LandingParams holds exactly one of elevation and speed
     ratio = min(1.0, params.gravity * distance / params.speed ** 2)
     return float(np.pi / 2 - 0.5 * np.arcsin(ratio)), params.speed
 
@@ -363,8 +366,8 @@ def plan_landing(points: np.ndarray, start: np.ndarray, goal_heading: float | No
     swept = swept_height(top.height, spec, params.rover_radius)
     open_score = np.nan_to_num(score, nan=-np.inf)
     rejected: list = []
-    maps = dict(spec=spec, top_down=top, ground=plane, protrusion=protrusion, known=known, obstacle=obstacle,
-                safe=safe, clearance=clearance, goal=goal, score=score)
+    maps: dict[str, Any] = dict(spec=spec, top_down=top, ground=plane, protrusion=protrusion, known=known,
+                                obstacle=obstacle, safe=safe, clearance=clearance, goal=goal, score=score)
     for _ in range(params.max_candidates):
         flat = int(np.argmax(open_score))
         if not np.isfinite(open_score.flat[flat]):

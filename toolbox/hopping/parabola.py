@@ -415,8 +415,9 @@ def fit_ballistic_robust(points: np.ndarray, tau: np.ndarray, gravity: float = M
     return {"coeffs": fit["solution"][:9].reshape(3, 3), **fit}
 
 
-def _robust_solve(points: np.ndarray, tau: np.ndarray, blocks: np.ndarray, gravity_prior, prior_sigma_rad,
-                  frame_weights, iterations: int, rng, offsets: np.ndarray | None = None,
+def _robust_solve(points: np.ndarray, tau: np.ndarray, blocks: np.ndarray, gravity_prior: np.ndarray | None,
+                  prior_sigma_rad: float, frame_weights: np.ndarray | None, iterations: int,
+                  rng: np.random.Generator | int | None, offsets: np.ndarray | None = None,
                   gravity: float = MOON_GRAVITY, min_sigma_fraction: float = MIN_SIGMA_FRACTION) -> dict:
     solution, sigma = fit_ballistic_lmeds(points, tau, blocks, rng=rng)
     frame_weights = np.ones(len(points)) if frame_weights is None else np.asarray(frame_weights, float)

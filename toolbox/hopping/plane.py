@@ -74,6 +74,7 @@ def ransac_plane(points: np.ndarray, threshold: float, iterations: int = 300,
             score = (counts[k], -cost[k])
             if best_score is None or score > best_score:
                 best_score, best = score, Plane(n[k], -float(n[k] @ p0[k]))
+    assert best is not None   # at least one non-degenerate sample was scored
     inliers = np.abs(best.signed_distance(points)) < threshold
     # Refit on the consensus set, then take the consensus of the refined plane.
     if inliers.sum() >= 3:
@@ -91,7 +92,7 @@ def plane_basis(normal: np.ndarray, first_axis_hint: np.ndarray | None = None) -
     normal = np.asarray(normal, dtype=np.float64)
     normal = normal / np.linalg.norm(normal)
     hint = np.asarray(first_axis_hint, dtype=np.float64) if first_axis_hint is not None else None
-    if hint is None or np.linalg.norm(hint - (hint @ normal) * normal) < 1e-9 * max(1.0, np.linalg.norm(hint)):
+    if hint is None or np.linalg.norm(hint - (hint @ normal) * normal) < 1e-9 * max(1.0, float(np.linalg.norm(hint))):
         hint = np.eye(3)[int(np.argmin(np.abs(normal)))]
     e1 = hint - (hint @ normal) * normal
     e1 /= np.linalg.norm(e1)

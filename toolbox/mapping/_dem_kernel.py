@@ -16,7 +16,8 @@ import numpy as np
 
 
 @numba.njit(cache=True, nogil=True, boundscheck=False)
-def cells_and_heights(points, origin_x, origin_y, cell, rows, cols, flat, heights32):
+def cells_and_heights(points: np.ndarray, origin_x: float, origin_y: float, cell: float, rows: int, cols: int,
+                      flat: np.ndarray, heights32: np.ndarray) -> None:
     """flat[i]: the flat cell index of point i (-1 outside the grid or z not finite); heights32[i]: its z."""
     for i in range(points.shape[0]):
         col = (points[i, 0] - origin_x) / cell
@@ -28,7 +29,7 @@ def cells_and_heights(points, origin_x, origin_y, cell, rows, cols, flat, height
 
 
 @numba.njit(cache=True, nogil=True, boundscheck=False)
-def highest_and_count(flat, heights32, heights, counts):
+def highest_and_count(flat: np.ndarray, heights32: np.ndarray, heights: np.ndarray, counts: np.ndarray) -> None:
     """heights (-inf on entry) takes each cell's highest point, NaN where none; counts (0 on entry) its points."""
     for i in range(flat.shape[0]):
         f = flat[i]

@@ -27,7 +27,8 @@ STRIP_ROWS = 128
 
 
 @numba.njit(cache=True, nogil=True, boundscheck=False)
-def _add_row(z, known, centre, row, y, sign, v0, v1, v2, v3, v4, v5):
+def _add_row(z: np.ndarray, known: np.ndarray, centre: float, row: int, y: float, sign: float, v0: np.ndarray,
+             v1: np.ndarray, v2: np.ndarray, v3: np.ndarray, v4: np.ndarray, v5: np.ndarray) -> None:
     for c in range(z.shape[1]):
         w = sign if known[row, c] else 0.0
         zc = (z[row, c] - centre) if known[row, c] else 0.0
@@ -40,7 +41,8 @@ def _add_row(z, known, centre, row, y, sign, v0, v1, v2, v3, v4, v5):
 
 
 @numba.njit(cache=True, nogil=True, boundscheck=False, parallel=True)
-def plane_fit_cells(z, known, centre, k, min_cells, tangent, roughness):
+def plane_fit_cells(z: np.ndarray, known: np.ndarray, centre: float, k: int, min_cells: int, tangent: np.ndarray,
+                    roughness: np.ndarray) -> None:
     """Per cell, the plane's gradient magnitude (metres per cell) into `tangent` and its roughness
     (metres) into `roughness`, NaN where the cell is unknown, has fewer than min_cells known cells
     in its window or they lie on a line. Heights are taken relative to `centre` (for precision)."""
@@ -52,7 +54,8 @@ def plane_fit_cells(z, known, centre, k, min_cells, tangent, roughness):
 
 
 @numba.njit(cache=True, nogil=True, boundscheck=False)
-def _plane_fit_strip(z, known, centre, k, min_cells, tangent, roughness, top, bottom):
+def _plane_fit_strip(z: np.ndarray, known: np.ndarray, centre: float, k: int, min_cells: int, tangent: np.ndarray,
+                     roughness: np.ndarray, top: int, bottom: int) -> None:
     rows, cols = z.shape
     ox, oy = cols // 2, rows // 2
     v0, v1, v2 = np.zeros(cols), np.zeros(cols), np.zeros(cols)

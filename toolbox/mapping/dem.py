@@ -19,6 +19,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
@@ -295,7 +296,7 @@ def _union_spec(specs: Sequence[GridSpec]) -> GridSpec:
     return GridSpec.covering((x_low, x_high), (y_low, y_high), cell)
 
 
-def _overlap_slices(source: GridSpec, target: GridSpec):
+def _overlap_slices(source: GridSpec, target: GridSpec) -> tuple[Any, Any]:
     """Slices (target, source) of the cells two aligned grids share; (None, None) if none."""
     if abs(source.cell - target.cell) > ALIGNMENT_TOLERANCE * target.cell:
         raise ValueError(f"cannot merge a {source.cell} m grid onto a {target.cell} m grid")
@@ -314,6 +315,6 @@ def _overlap_slices(source: GridSpec, target: GridSpec):
     return target_slices, source_slices
 
 
-def _shared_range(offset: int, source_count: int, target_count: int):
+def _shared_range(offset: int, source_count: int, target_count: int) -> tuple[int, int] | None:
     start, stop = max(0, offset), min(target_count, offset + source_count)
     return (start, stop) if stop > start else None

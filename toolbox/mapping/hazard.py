@@ -46,6 +46,7 @@ radius on a 0.40 m track, mast and PTU raising the centre of mass):
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
@@ -142,7 +143,7 @@ def running_extreme(image: np.ndarray, k: int, axis: int, minimum: bool) -> np.n
     pad[axis] = (k, k)
     current = np.pad(image, pad, constant_values=np.inf if minimum else -np.inf)
 
-    def cut(array, start, stop):
+    def cut(array: np.ndarray, start: int, stop: int) -> np.ndarray:
         index = [slice(None)] * array.ndim
         index[axis] = slice(start, array.shape[axis] + stop if stop <= 0 else stop)
         return array[tuple(index)]
@@ -217,7 +218,8 @@ def plane_fit(heights: np.ndarray, cell: float, radius: float) -> tuple[np.ndarr
 PLANE_STRIP_ROWS = 64
 
 
-def _plane_fit_rows(z, known, centre, x, y, k, cell, inner):
+def _plane_fit_rows(z: np.ndarray, known: np.ndarray, centre: float, x: np.ndarray, y: np.ndarray, k: int,
+                    cell: float, inner: Any) -> Any:
     weight = known.astype(np.float64)
     zc = np.where(known, z - centre, 0.0)
     wx, wy = weight * x, weight * y
@@ -280,9 +282,10 @@ def step_height(heights: np.ndarray, cell: float, edge_radius: float, ground_rad
     return np.where(known, step, np.nan)
 
 
-def _step_height_single(z, single, known, k_edge, k_ground):
+def _step_height_single(z: np.ndarray, single: np.ndarray, known: np.ndarray, k_edge: int,
+                        k_ground: int) -> np.ndarray:
     """step_height's local_minimum and ground_surface with cv2 in float32 (the values float32 holds)."""
-    def square(k):
+    def square(k: int) -> np.ndarray:
         return cv2.getStructuringElement(cv2.MORPH_RECT, (2 * k + 1, 2 * k + 1))
 
     low = np.where(known, single, np.float32(np.inf))

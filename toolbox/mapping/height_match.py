@@ -86,7 +86,7 @@ def match_height_maps(source: np.ndarray, target: np.ndarray, centre: np.ndarray
             costs[row, col] = np.sqrt(np.mean((difference - np.median(difference)) ** 2))
     if np.isnan(costs).all():
         raise ValueError(f"the clouds share fewer than 10 cells at every shift within {search:g} m")
-    row, col = np.unravel_index(np.nanargmin(costs), costs.shape)
+    row, col = (int(i) for i in np.unravel_index(np.nanargmin(costs), costs.shape))
     shift = np.array([offsets[col] + cell * _vertex(costs[row, col - 1:col + 2]),
                       offsets[row] + cell * _vertex(costs[row - 1:row + 2, col])])
     gx, gy = np.meshgrid(offsets, offsets)

@@ -75,7 +75,8 @@ def cell_points(heights: np.ndarray, spec: GridSpec) -> np.ndarray:
     return np.stack([x, y, np.asarray(heights, dtype=np.float64)], axis=-1)
 
 
-def project_cells(points: np.ndarray, intrinsics: Intrinsics, camera_to_world: np.ndarray):
+def project_cells(points: np.ndarray, intrinsics: Intrinsics,
+                  camera_to_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Pixel coordinates (rows, cols, 2) and camera z-depth (rows, cols) of world points."""
     in_camera = apply(invert(camera_to_world), points)
     return project(in_camera, intrinsics), in_camera[..., 2]

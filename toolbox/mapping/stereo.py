@@ -189,7 +189,7 @@ def to_uint8(left: np.ndarray, right: np.ndarray) -> tuple[np.ndarray, np.ndarra
         return left, right
     both = np.concatenate([np.ravel(left), np.ravel(right)]).astype(np.float64)
     top = np.nanpercentile(both, 99.9) or 1.0
-    def scale(image):
+    def scale(image: np.ndarray) -> np.ndarray:
         return np.clip(np.nan_to_num(np.asarray(image, np.float64) * (255.0 / top)), 0, 255).astype(np.uint8)
     return scale(left), scale(right)
 

@@ -95,7 +95,8 @@ def serpentine(rows: list[np.ndarray]) -> np.ndarray:
     return np.concatenate(ordered, axis=0)
 
 
-def in_view(view_pan: float, view_tilt: float, horizontal_fov: float, vertical_fov: float, pan, tilt) -> np.ndarray:
+def in_view(view_pan: float, view_tilt: float, horizontal_fov: float, vertical_fov: float,
+            pan: float | np.ndarray, tilt: float | np.ndarray) -> np.ndarray:
     """True where the direction at PTU angles (pan, tilt) falls inside the frame of a camera
     looking from the PTU centre at (view_pan, view_tilt) (pinhole, square frame edges)."""
     direction = direction_of(pan, tilt)
@@ -115,7 +116,8 @@ def travel(views: np.ndarray) -> float:
     return float(steps.max(axis=1).sum()) if len(steps) else 0.0
 
 
-def _check(pan_range, tilt_range, horizontal_fov, vertical_fov, overlap) -> None:
+def _check(pan_range: tuple[float, float], tilt_range: tuple[float, float], horizontal_fov: float,
+           vertical_fov: float, overlap: float) -> None:
     for name, (low, high) in (("pan range", pan_range), ("tilt range", tilt_range)):
         if not high >= low:
             raise ValueError(f"{name} must be (low, high) with low <= high, got {(low, high)}")

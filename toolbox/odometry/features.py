@@ -10,6 +10,8 @@ Positions are pixel centres at integer (u, v), as toolbox.camera has them, float
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
+from typing import Any
 
 import cv2
 import numpy as np
@@ -39,7 +41,8 @@ def bucketed_features(image: np.ndarray, wanted: int, grid: tuple[int, int],
     return np.array([k.pt for k in keypoints], np.float32), descriptors
 
 
-def strongest_per_cell(keypoints, shape: tuple[int, int], wanted: int, grid: tuple[int, int]) -> list:
+def strongest_per_cell(keypoints: Sequence[Any], shape: tuple[int, ...], wanted: int,
+                       grid: tuple[int, int]) -> list[Any]:
     """The keypoints with the highest response in each grid cell, at most ceil(wanted / cells)
     per cell (cells with fewer keep what they have; the shortfall is not moved elsewhere)."""
     columns, rows = grid

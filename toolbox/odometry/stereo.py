@@ -26,6 +26,7 @@ are raw (distorted) image pixels; toolbox.camera.project and cv2's distortion ve
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -164,9 +165,10 @@ def stereo_motion(key: StereoKeyframe, left: np.ndarray, right: np.ndarray, rig:
     # 1. The new pair as a keyframe; with `warp`, the new left image as the keyframe would see it.
     new = stereo_keyframe(left, right, rig, params)
     homography = ground_homography(key, guess) if warp and guess is not None else None
-    view = new if homography is None else warped_view(left, homography, params)
+    view = new if homography is None else warped_view(left, homography, params, key.camera)
     # 2. A coarse motion from descriptor matches (in the guess's window) by PnP in RANSAC; where
     #    descriptors find too little (a rock close ahead changes every patch), the guess itself.
+    descriptors_failed: OdometryFailure | None
     try:
         coarse = coarse_motion(key, view, params, guess, homography)
     except OdometryFailure as failure:
@@ -256,7 +258,8 @@ def apply_homography(homography: np.ndarray, pixels: np.ndarray) -> np.ndarray:
         return mapped[:, :2] / mapped[:, 2:3]
 
 
-def warped_view(left: np.ndarray, homography: np.ndarray, params: StereoOdometryParams) -> StereoKeyframe:
+def warped_view(left: np.ndarray, homography: np.ndarray, params: StereoOdometryParams,
+                camera: Intrinsics) -> StereoKeyframe:
     """The new left image resampled at the homography's image of each keyframe pixel (what the
     keyframe camera would have seen of the ground from here), and its features. Only pixels,
     descriptors and image are meaningful (no depth)."""
@@ -264,7 +267,7 @@ def warped_view(left: np.ndarray, homography: np.ndarray, params: StereoOdometry
     image = cv2.warpPerspective(np.asarray(left), homography, (width, height),
                                 flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
     pixels, descriptors = bucketed_features(image, params.features, params.grid, params.fast_threshold)
-    return StereoKeyframe(pixels, descriptors, np.full((len(pixels), 3), np.nan), None, image)
+    return StereoKeyframe(pixels, descriptors, np.full((len(pixels), 3), np.nan), camera, image)
 
 
 # ---------------------------------------------------------------------------------- stereo depth
@@ -412,6 +415,8 @@ def guided_tracks(key: StereoKeyframe, new_left: np.ndarray, key_from_new: np.nd
                                        window=params.track_window, max_shift=params.track_shift_px, levels=2)
         return index[ok], tracked[ok].astype(np.float64)
     # In the warped view the patches keep their keyframe shape; the fit found there, carried back.
+    if warped is None:
+        raise ValueError("guided_tracks: a homography needs the warped image it made")
     start = apply_homography(np.linalg.inv(homography), predicted[index]).astype(np.float32)
     tracked, ok = refine_positions(key.image, key.pixels[index], warped, start,
                                    window=params.track_window, max_shift=params.track_shift_px, levels=2)
@@ -447,7 +452,7 @@ def reprojection_residuals(key_from_new: np.ndarray, points_key: np.ndarray, pix
     return np.concatenate([forward.ravel(), backward.ravel()])
 
 
-def gauss_newton(key_from_new: np.ndarray, residuals, extra: int = 0,
+def gauss_newton(key_from_new: np.ndarray, residuals: Callable[[np.ndarray, np.ndarray], np.ndarray], extra: int = 0,
                  iterations: int = 10) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Least squares over the right perturbation: key_from_new @ exp(delta) (and `extra` further
     parameters, starting at 0) minimising |residuals(pose, x_extra)|^2. Returns the pose, the extra
@@ -456,7 +461,7 @@ def gauss_newton(key_from_new: np.ndarray, residuals, extra: int = 0,
     steps = np.concatenate([np.full(6, 1e-6), np.full(extra, 1e-4)])
     pose, x = key_from_new, np.zeros(extra)
 
-    def at(e):
+    def at(e: np.ndarray) -> np.ndarray:
         return residuals(pose @ exp_se3(e[:6]), x + e[6:])
 
     jacobian = np.zeros((0, 6 + extra))
@@ -501,7 +506,8 @@ def refine_motion(key_from_new: np.ndarray, points_key: np.ndarray, pixels_new: 
     for _ in range(3):
         if forward.sum() < 6:
             return pose, np.full((6, 6), np.nan), forward, float("inf")
-        def residuals(p, x, forward=forward, backward=backward):
+        def residuals(p: np.ndarray, x: np.ndarray, forward: np.ndarray = forward,
+                      backward: np.ndarray = backward) -> np.ndarray:
             c = float(x[0]) if len(x) else 0.0
             r = reprojection_residuals(p, offset_points(points_key[forward], c, rect), pixels_new[forward],
                                        offset_points(points_new[backward], c, rect), pixels_key[backward], camera)

@@ -34,7 +34,8 @@ u = numba.uint64
 
 
 @numba.njit(cache=True, nogil=True, boundscheck=False)
-def astar_nodes(cost, rows, width, weight, source, target, cell, least):
+def astar_nodes(cost: np.ndarray, rows: int, width: int, weight: float, source: int, target: int, cell: float,
+                least: float) -> np.ndarray:
     """Flat indices of a least-cost path from source to target; empty when the target is unreachable.
 
     cost: the cost grid, flat (rows x width, C order, float64 >= 0, +inf blocked); weight, cell: as in
@@ -146,12 +147,12 @@ def astar_nodes(cost, rows, width, weight, source, target, cell, least):
     if not found:
         return np.empty(0, np.int64)
     steps = 1
-    node = target
+    node = np.int64(target)
     while node != source:
         node -= offsets[parent[node]]
         steps += 1
     path = np.empty(steps, np.int64)
-    node = target
+    node = np.int64(target)
     for i in range(steps - 1, -1, -1):
         path[i] = node
         if i:

@@ -158,6 +158,7 @@ def cut_for_drive_error(waypoints_xy: np.ndarray, heading_rad: float, hazard_dis
                                 _place(outline, profile))
     # Where the direction is unknown: the position's worst spread plus the heading's times the lever.
     worst = profile.sigma_m[:, None] + np.sqrt(profile.covariance[:, 2, 2])[:, None] * np.hypot(*outline.T)
+    assert towards is not None   # _sample gives directions when it is given them
     error = sigmas * np.where(towards.any(axis=-1), profile.sigma_of(outline, towards), worst)
     margin = distance - error                      # (N, M): room left at each outline point after the error
     # The outline's room; with a hazard inside the footprint (pushed onto it: only a rover leaving can

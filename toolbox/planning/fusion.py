@@ -31,7 +31,7 @@ EDGE_TOLERANCE = 1e-9
 class FusedLayers(MapLayers):
     """Fused layers, and per cell how far from it the look that decided it stood (inf: no look)."""
 
-    seen_from: np.ndarray = field(default=None, repr=False)
+    seen_from: np.ndarray | None = field(default=None, repr=False)
 
 
 def blank_map(spec: GridSpec) -> MapLayers:
@@ -165,7 +165,7 @@ def holes_on_path(cells: np.ndarray, holes: np.ndarray, cell: float, clearance_m
     return np.isin(labels, crossed[crossed > 0])
 
 
-def inside_box(x, y, box: tuple[float, float, float, float]) -> np.ndarray:
+def inside_box(x: float | np.ndarray, y: float | np.ndarray, box: tuple[float, float, float, float]) -> np.ndarray:
     """Whether world points (arrays broadcast) lie in the box (x_min, x_max, y_min, y_max), metres."""
     x_min, x_max, y_min, y_max = box
     return (np.asarray(x) >= x_min) & (np.asarray(x) <= x_max) & (np.asarray(y) >= y_min) & (np.asarray(y) <= y_max)

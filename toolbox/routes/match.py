@@ -40,7 +40,7 @@ import math
 import struct
 from collections.abc import Sequence
 from dataclasses import dataclass, fields
-from typing import Protocol, runtime_checkable
+from typing import Any, Protocol, runtime_checkable
 
 import cv2
 import numpy as np
@@ -89,15 +89,15 @@ class PlaceMatcher(Protocol):
 
     name: str
 
-    def describe(self, image: np.ndarray): ...
+    def describe(self, image: np.ndarray) -> Any: ...
 
-    def similarity(self, desc_a, desc_b) -> float: ...
+    def similarity(self, desc_a: Any, desc_b: Any) -> float: ...
 
-    def match(self, desc_live, desc_stored) -> MatchResult: ...
+    def match(self, desc_live: Any, desc_stored: Any) -> MatchResult: ...
 
-    def to_bytes(self, descriptor) -> bytes: ...
+    def to_bytes(self, descriptor: Any) -> bytes: ...
 
-    def from_bytes(self, data: bytes): ...
+    def from_bytes(self, data: bytes) -> Any: ...
 
 
 def heading_offset(shift_u_px: float, focal_px: float) -> float:
@@ -113,7 +113,7 @@ class RankedMatch:
     result: MatchResult
 
 
-def rank_route(matcher: PlaceMatcher, live, stored: Sequence, top: int | None = None,
+def rank_route(matcher: PlaceMatcher, live: Any, stored: Sequence[Any], top: int | None = None,
                shortlist: int = 10) -> list[RankedMatch]:
     """Match one live descriptor against a route's stored descriptors; best first.
 
@@ -124,7 +124,7 @@ def rank_route(matcher: PlaceMatcher, live, stored: Sequence, top: int | None = 
     """
     quick_score = getattr(matcher, "quick_score", None)
     if quick_score is None or len(stored) <= shortlist:
-        chosen = range(len(stored))
+        chosen: range | np.ndarray = range(len(stored))
     else:
         scores = np.array([quick_score(live, d) for d in stored])
         chosen = np.argsort(-scores, kind="stable")[:shortlist]
@@ -140,7 +140,7 @@ def grey_image(image: np.ndarray) -> np.ndarray:
     if image.dtype != np.uint8:
         raise ValueError(f"images must be uint8, got {image.dtype}")
     if image.ndim == 3 and image.shape[2] in (3, 4):
-        return np.mean(image[..., :3], axis=2, dtype=np.float32).round().astype(np.uint8)
+        return np.asarray(np.mean(image[..., :3], axis=2, dtype=np.float32).round().astype(np.uint8))
     if image.ndim != 2:
         raise ValueError(f"images must be (h, w) or (h, w, 3), got shape {image.shape}")
     return image
@@ -202,7 +202,7 @@ def _read_text(view: memoryview, at: int) -> tuple[str, int]:
     return bytes(view[at + 1:at + 1 + length]).decode(), at + 1 + length
 
 
-def _descriptor_arrays(descriptor) -> dict[str, np.ndarray]:
+def _descriptor_arrays(descriptor: Any) -> dict[str, np.ndarray]:
     return {f.name: np.asarray(getattr(descriptor, f.name)) for f in fields(descriptor)}
 
 
@@ -235,7 +235,7 @@ class ContourConfig:
     point_tolerance: float = 0.3
     min_similar_points: int = 25
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         if not 0 < self.min_similar_points <= self.contour_points:
             raise ValueError(f"min_similar_points must be in 1..contour_points, got {self.min_similar_points}")
         if self.cell_px < 1 or self.contour_points < 3 or self.point_tolerance <= 0:
@@ -255,8 +255,8 @@ class ContourDescriptor:
 
     points: np.ndarray
     centroid_px: np.ndarray
-    top_distance_px: np.ndarray
-    cell_count: np.ndarray
+    top_distance_px: np.ndarray | np.floating
+    cell_count: np.ndarray | np.integer
 
     @property
     def empty(self) -> bool:
@@ -479,7 +479,7 @@ class FeatureConfig:
     min_inlier_ratio: float = 0.25
     scale_range: tuple[float, float] = (0.7, 1.4)
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         if self.work_width < 64 or self.features < 8 or not 0 < self.ratio <= 1:
             raise ValueError("work_width >= 64, features >= 8 and 0 < ratio <= 1 are required")
         if self.min_inliers < 4:
@@ -497,7 +497,7 @@ class FeatureDescriptor:
 
     points: np.ndarray
     descriptors: np.ndarray
-    work_scale: np.ndarray
+    work_scale: np.ndarray | np.floating
 
     def __len__(self) -> int:
         return len(self.points)
@@ -578,7 +578,8 @@ class FeatureMatcher:
         return FeatureDescriptor(**_unpack_arrays(data, self.name))
 
 
-def _far_shift(stored: np.ndarray, live: np.ndarray, share: float = 0.3, least: int = 5):
+def _far_shift(stored: np.ndarray, live: np.ndarray, share: float = 0.3,
+               least: int = 5) -> tuple[float, float] | None:
     """Median displacement of the highest `share` of the matched points in the image (the farthest
     ground in a forward view), or None if fewer than `least` of them."""
     if len(stored) < least:
@@ -590,7 +591,8 @@ def _far_shift(stored: np.ndarray, live: np.ndarray, share: float = 0.3, least: 
     return float(du), float(dv)
 
 
-def _image_motion(stored: np.ndarray, live: np.ndarray):
+def _image_motion(stored: np.ndarray,
+                  live: np.ndarray) -> tuple[tuple[float, float] | None, float | None, float | None]:
     """Shift, rotation and scale for the adjust actions, from matched inlier points.
 
     The shift is the median displacement (robust, and Bearnav's horizontal-shift mode in spirit:
@@ -614,7 +616,7 @@ MATCHER_NAMES = ("features", "contour")
 DEFAULT_MATCHER = "features"
 
 
-def make_matcher(name: str = DEFAULT_MATCHER, config=None) -> PlaceMatcher:
+def make_matcher(name: str = DEFAULT_MATCHER, config: Any = None) -> PlaceMatcher:
     """The matcher called `name`, with its config (or its defaults)."""
     if name == "features":
         return FeatureMatcher(config)

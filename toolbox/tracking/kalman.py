@@ -79,7 +79,7 @@ class Track:
 
     def in_gate(self, xy: np.ndarray, measurement_cov: np.ndarray) -> bool:
         near = np.linalg.norm(np.asarray(xy, dtype=float) - self.state[:2]) <= self.params.min_gate_m
-        return near or self.distance2(xy, measurement_cov) <= self.params.gate_chi2
+        return bool(near or self.distance2(xy, measurement_cov) <= self.params.gate_chi2)
 
     def update(self, xy: np.ndarray, measurement_cov: np.ndarray) -> None:
         h = np.zeros((2, 4))

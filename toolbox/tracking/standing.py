@@ -162,8 +162,8 @@ def _ground_patches(lowest: np.ndarray, plane: Plane, spec: GridSpec, params: St
     count = int(seen.sum())
     if count == 0:
         return seen
-    sources, targets = np.concatenate(sources), np.concatenate(targets)
-    graph = coo_matrix((np.ones(len(sources)), (sources, targets)), shape=(count, count))
+    source, target = np.concatenate(sources), np.concatenate(targets)
+    graph = coo_matrix((np.ones(len(source)), (source, target)), shape=(count, count))
     _, label = connected_components(graph, directed=False)
     size = np.bincount(label)
     xs, ys = spec.centres()
