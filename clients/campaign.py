@@ -25,6 +25,18 @@ A campaign file (TOML) names the runs:
                                   #   the last line of that command name: "grab-tof.product")
     rows = "dem:product.json:grid.rows"   # a JSON path in a file of the product that line wrote
 
+A measurement campaign adds Python where a table is not enough (tests/bench's campaigns are such
+files: clients/campaigns/navigation.toml):
+
+    runs_from = "clients.scoring.navigation:runs"   # MODULE:FUNCTION(**runs_args) -> the runs (dicts),
+    [runs_args]                                     #   appended to [[run]] and [product]; a run may
+    scenes = 10                                     #   hold `world` (world.toml options over [world])
+                                                    #   and `configs` ({"navigation.toml": {...}})
+    score = "clients.scoring.navigation:score"      # MODULE:FUNCTION(run, data_dir) -> more columns,
+                                                    #   computed in the worker after the mission
+    report = "clients.scoring.navigation:report"    # MODULE:FUNCTION(records) -> the text of
+                                                    #   DIR/report.md and of `rvs campaign --report`
+
 Each run is a real `rvs-server` process (`--port 0`, its ready line read; `--web-port 0`: no web
 view) with its own configuration and data directories under OUT/runs/RUN/, driven by the mission
 runner in-process through the client library and stopped with `quit`. Besides the run's own
@@ -51,6 +63,7 @@ from __future__ import annotations
 import argparse
 import csv
 import hashlib
+import importlib
 import io
 import itertools
 import json
@@ -76,7 +89,8 @@ from .run_log import RunLog, write_atomic
 
 EXIT_OK, EXIT_FAILED, EXIT_NOT_STARTED = 0, 1, 2
 REPO = Path(__file__).resolve().parent.parent
-WORLD_KEYS = ("seed", "world_file")   # the keys of a run that pick its world; all others are ${VARS}
+# The keys of a run that set up its server (its world, its configuration); all others are ${VARS}.
+WORLD_KEYS = ("seed", "world_file", "world", "configs")
 RESULTS_FILE = "results.jsonl"
 READY_TIMEOUT_S = 120.0
 
@@ -104,12 +118,29 @@ class Campaign:
     collect: dict[str, str]
     sim_speed: float = 1.0
     timeout_s: float = 600.0
+    score: str = ""       # MODULE:FUNCTION(run, data_dir) -> columns, after the mission
+    report: str = ""      # MODULE:FUNCTION(records) -> the campaign's own summary text
 
     @property
     def settings(self) -> dict[str, Any]:
         """What makes two runs of the same name comparable (RunLog's `settings`)."""
-        basis = json.dumps([self.mission_text, self.world, self.collect, self.sim_speed], sort_keys=True)
-        return {"campaign": self.name, "digest": hashlib.sha256(basis.encode()).hexdigest()[:16]}
+        basis = [self.mission_text, self.world, self.collect, self.sim_speed] + ([self.score] if self.score else [])
+        digest = hashlib.sha256(json.dumps(basis, sort_keys=True).encode()).hexdigest()[:16]
+        return {"campaign": self.name, "digest": digest}
+
+
+def hook(spec: str, where: str) -> Callable[..., Any]:
+    """The function a campaign file names as MODULE:FUNCTION (importable where the campaign runs)."""
+    module_name, colon, name = spec.partition(":")
+    if not colon or not module_name or not name:
+        raise CampaignError(f"{where}: {spec!r}: expected MODULE:FUNCTION")
+    try:
+        function = getattr(importlib.import_module(module_name), name)
+    except (ImportError, AttributeError) as exc:
+        raise CampaignError(f"{where}: {spec!r}: {exc}") from None
+    if not callable(function):
+        raise CampaignError(f"{where}: {spec!r} is not a function")
+    return function
 
 
 def load_campaign(path: str | Path) -> Campaign:
@@ -120,7 +151,8 @@ def load_campaign(path: str | Path) -> Campaign:
         raise CampaignError(f"cannot read {path}: {exc.strerror}") from None
     except tomllib.TOMLDecodeError as exc:
         raise CampaignError(f"{path}: {exc}") from None
-    known = {"name", "mission", "sim_speed", "timeout_s", "world", "run", "product", "collect"}
+    known = {"name", "mission", "sim_speed", "timeout_s", "world", "run", "product", "collect", "runs_from",
+             "runs_args", "score", "report"}
     unknown = sorted(set(data) - known)
     if unknown:
         raise CampaignError(f"{path.name}: unknown keys {', '.join(unknown)} (known: {', '.join(sorted(known))})")
@@ -138,15 +170,24 @@ def load_campaign(path: str | Path) -> Campaign:
             raise CampaignError(f"{path.name}: every key of [product] must be a non-empty list")
         names = list(product)
         runs += [dict(zip(names, combination, strict=True)) for combination in itertools.product(*product.values())]
+    if "runs_from" in data:
+        made = hook(str(data["runs_from"]), f"{path.name} runs_from")(**dict(data.get("runs_args", {})))
+        if not isinstance(made, list) or not all(isinstance(run, dict) for run in made):
+            raise CampaignError(f"{path.name}: runs_from must give a list of runs (dicts)")
+        runs += [dict(run) for run in made]
+    for key in ("score", "report"):
+        if key in data:
+            hook(str(data[key]), f"{path.name} {key}")     # refused now, not in every worker
     if not runs:
-        raise CampaignError(f"{path.name}: no runs ([[run]] tables or a [product] of lists)")
+        raise CampaignError(f"{path.name}: no runs ([[run]] tables, a [product] of lists, or runs_from)")
     keys = [RunLog.key(run) for run in runs]
     if len(set(keys)) != len(keys):
         raise CampaignError(f"{path.name}: the same run is named twice")
     collect = {str(column): str(spec) for column, spec in data.get("collect", {}).items()}
     campaign = Campaign(name=str(data.get("name", path.stem)), path=path, mission_name=mission_path.name,
                         mission_text=mission_text, world=dict(data.get("world", {})), runs=runs, collect=collect,
-                        sim_speed=float(data.get("sim_speed", 1.0)), timeout_s=float(data.get("timeout_s", 600.0)))
+                        sim_speed=float(data.get("sim_speed", 1.0)), timeout_s=float(data.get("timeout_s", 600.0)),
+                        score=str(data.get("score", "")), report=str(data.get("report", "")))
     problems = []
     for run in runs:   # every run's mission must parse before anything starts
         try:
@@ -292,7 +333,12 @@ class Server:
         shutil.copytree(REPO / "configs", config_dir)
         shutil.copytree(REPO / "workflows", run_dir / "workflows", dirs_exist_ok=True)
         base = tomllib.loads((config_dir / "world.toml").read_text())
-        (config_dir / "world.toml").write_text(dump_toml(_merge(base, world)) + "\n")
+        (config_dir / "world.toml").write_text(dump_toml(_merge(_merge(base, world), run.get("world", {}))) + "\n")
+        for name, over in run.get("configs", {}).items():     # a run's own settings, over the repository's
+            if Path(name).name != name or not name.endswith(".toml") or not (config_dir / name).is_file():
+                raise RunFailed(f"configs: {name!r} is not a configuration file of configs/")
+            merged = _merge(tomllib.loads((config_dir / name).read_text()), over)
+            (config_dir / name).write_text(dump_toml(merged) + "\n")
         self.data_dir = run_dir / "data"
         shutil.rmtree(self.data_dir, ignore_errors=True)   # a retry starts from nothing
         args = [sys.executable, "-m", "rvs_server", "--port", "0", "--zmq-port", "0", "--web-port", "0",
@@ -386,6 +432,8 @@ def execute_run(spec: dict[str, Any]) -> dict[str, Any]:
         if report.exit_status != mission.EXIT_OK:
             raise RunFailed(f"attempt {attempt}: {outcome}")
         values = collect_values(spec["collect"], recorder.replies)
+        if spec.get("score"):
+            values.update(hook(spec["score"], "score")(run=run, data_dir=server.data_dir))
     except RvsClientError as exc:
         raise RunFailed(f"attempt {attempt}: {exc}") from None
     finally:
@@ -415,8 +463,9 @@ def summary_rows(campaign: Campaign, log: RunLog) -> list[dict[str, Any]]:
             row["attempts"] = record.get("attempts")
             row["seconds"] = record.get("seconds")
             row["host"] = record.get("host")
-        for column in campaign.collect:
-            row[column] = (record or {}).get("values", {}).get(column)
+        values = (record or {}).get("values", {})
+        for column in [*campaign.collect, *(k for k in values if k not in campaign.collect)]:
+            row[column] = values.get(column)
         row["error"] = (record or {}).get("error", "")
         rows.append(row)
     return rows
@@ -442,6 +491,16 @@ def write_summary(campaign: Campaign, log: RunLog, out: Path) -> None:
              "| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
     table += ["| " + " | ".join(cell(row.get(column)) for column in columns) + " |" for row in rows]
     write_atomic(out / "summary.md", "\n".join(table) + "\n")
+    if campaign.report:
+        write_atomic(out / "report.md", campaign_report(campaign, log) + "\n")
+
+
+def campaign_report(campaign: Campaign, log: RunLog) -> str:
+    """The campaign's own summary (its `report` hook) of the runs finished so far."""
+    if not campaign.report:
+        return ""
+    records = [record for record in log.runs() if "error" not in record]
+    return str(hook(campaign.report, "report")(records))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -530,7 +589,7 @@ def run_campaign(campaign: Campaign, out: Path, workers: int | None = None, sche
             spec = {"run": run, "name": name, "run_dir": str(out / "runs" / name),
                     "mission_text": campaign.mission_text,
                     "mission_name": campaign.mission_name, "world": campaign.world, "collect": campaign.collect,
-                    "sim_speed": campaign.sim_speed, "timeout_s": campaign.timeout_s}
+                    "sim_speed": campaign.sim_speed, "timeout_s": campaign.timeout_s, "score": campaign.score}
             future = client.submit(execute_run, spec, key=f"rvs-run-{name}-{time.time_ns()}", pure=False,
                                    resources={"servers": 1}, retries=1)
             futures[future] = (run, time.monotonic())
