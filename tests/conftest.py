@@ -218,6 +218,19 @@ def pairs(reply: str) -> dict[str, str]:
     return parse_reply(reply).data
 
 
+def one_product(root: Path, line: str, timeout: float = 300) -> tuple[ServerProcess, dict[str, str]]:
+    """A server on fresh data and the repository's configs under `root` runs one command and is stopped:
+    the server (its data_dir) and the reply's fields (a module fixture's stored product)."""
+    server = ServerProcess(data_dir=root / "data", config_dir=write_configs(root / "configs")).start()
+    try:
+        with server.connect() as client:
+            reply = client.command(line, timeout=timeout)
+    finally:
+        server.stop()
+    assert " OK " in reply, reply
+    return server, pairs(reply)
+
+
 @pytest.fixture
 def server_factory(tmp_path):
     """Start servers on demand; all are stopped at the end of the test."""

@@ -22,19 +22,13 @@ from PIL import Image as PIL_Image
 from rvs_server.products.ply import read_ply
 from rvs_server.products.rasters import read_geotiff, read_png
 
-from conftest import ServerProcess, pairs, write_configs
+from conftest import one_product
 
 
 @pytest.fixture(scope="module")
 def product(tmp_path_factory):
     """A quarter-panorama DEM from the TOF camera: GeoTIFFs (maps and truth), a PLY cloud, PNG pictures."""
-    root = tmp_path_factory.mktemp("readers")
-    server = ServerProcess(data_dir=root / "data", config_dir=write_configs(root / "configs")).start()
-    try:
-        with server.connect() as c:
-            reply = pairs(c.command("dem-full-tof --pan -30:30 --output readers", timeout=120))
-    finally:
-        server.stop()
+    server, reply = one_product(tmp_path_factory.mktemp("readers"), "dem-full-tof --pan -30:30 --output readers")
     path = server.data_dir / "products" / reply["product"]
     manifest = json.loads((path / "product.json").read_text())
     assert manifest["status"] == "complete"

@@ -11,7 +11,7 @@ import tifffile
 
 from clients.cli import main as rvs
 
-from conftest import REPO, pairs
+from conftest import REPO, one_product
 
 STRICT_STEP = 0.03     # m; mapping.toml's step_limit is 0.10
 
@@ -31,14 +31,8 @@ def manifest(product: Path) -> dict:
 @pytest.fixture(scope="module")
 def stored(tmp_path_factory):
     """One dem-full-tof product made by a real server, which is then stopped."""
-    from conftest import ServerProcess, write_configs
     root = tmp_path_factory.mktemp("remap")
-    server = ServerProcess(data_dir=root / "data", config_dir=write_configs(root / "configs")).start()
-    try:
-        with server.connect() as c:
-            reply = pairs(c.command("dem-full-tof --pan -40:40 --output scan", timeout=300))
-    finally:
-        server.stop()
+    _, reply = one_product(root, "dem-full-tof --pan -40:40 --output scan")
     return root, Path(reply["path"]), reply
 
 
