@@ -31,6 +31,17 @@ end against the memory after the first minute of warm-up, job durations late aga
 Exit status 0 only if: no reply lost, duplicated, stray or of an outcome its request does not
 allow (500 included); memory growth at most `--max-rss-growth` %; the log folder within its
 rotation bound; `quit` answered OK and the server's exit status 0.
+
+`--season` (issue 46: a server that lives through a season) makes the job stream a season's work
+beside a running hazard-start: dem-update-tof, navigate, hop and hop-plan, route-follow of a route it
+records first, over and over, with a real segmentation fault injected into the native worker every
+third cycle (`sim-fault --device worker`: that job ends 500, `continue` finishes it) and a small
+storage cap so the retention rule removes products. Its memory reference is the end of the first
+full cycle; threads and open files must not grow past it; the worker must have been restarted.
+Figures go to tests/bench/results/soak.jsonl as JSON lines: one per minute while it runs (so a killed
+soak leaves what it saw) and the verdict at the end:
+
+    nohup .venv/bin/python tests/bench/soak.py --season --minutes 60 --tcp 3 --zmq 2 --rate 2 > soak.log &
 """
 from __future__ import annotations
 
@@ -59,7 +70,14 @@ sys.path[:0] = [str(REPO), str(REPO / "tests")]
 from conftest import SIM_SPEED, ServerProcess, write_configs  # noqa: E402
 
 MAX_LINE = 8192
+HOPPING = """sfm_threads = 1
+[hopper.camera]
+width = 320
+height = 240
+motion_blur = false
+"""   # --season: the hopper's small camera, as tests/hopping, so a hop-plan takes seconds
 IAC, WILL, SB, SE = 255, 251, 250, 240
+TELNET_ANSWER = re.compile(rb"\xff[\xfb-\xfe].", re.DOTALL)   # IAC WILL/WONT/DO/DONT option
 OK = "OK"
 
 
@@ -120,6 +138,19 @@ class Stats:
                 self.unexpected.append(f"{p.transport} {p.client} sent {p.text!r} -> {line[:300]!r}")
         if p.category == "immediate" and outcome == OK:
             self.latencies.append((p.at, p.transport, time.perf_counter() - p.sent))
+
+
+SEASON_LABELS = ("dem-update-tof", "dem-update-tof (crash)", "continue", "navigate", "hop", "hop-plan",
+                 "route-follow", "drive", "hazard-start", "hazard-stop")
+RESULTS = REPO / "tests" / "bench" / "results" / "soak.jsonl"
+
+
+def append_result(record: dict[str, Any]) -> None:
+    RESULTS.parent.mkdir(parents=True, exist_ok=True)
+    with open(RESULTS, "a", encoding="utf-8") as handle:
+        handle.write(json.dumps(record) + "\n")
+        handle.flush()
+        os.fsync(handle.fileno())
 
 
 def outcome_of(code: int | str | None) -> str:
@@ -223,7 +254,9 @@ class TcpConnection(Connection):
                 raw = await self.reader.readline()
                 if not raw:
                     break
-                raw = raw.rstrip(b"\r\n")
+                # The server refuses telnet options a line asked for (IAC DONT/WONT x, RFC 854): a telnet
+                # client takes those bytes out of the stream, and so does this one.
+                raw = TELNET_ANSWER.sub(b"", raw.rstrip(b"\r\n"))
                 if raw.startswith(b"* EVENT "):
                     self.stats.events["tcp"] += 1
                     continue
@@ -483,6 +516,10 @@ class Run:
         self.stopping = False
         self.samples: list[tuple[float, float, int, int, float]] = []  # at, rss MiB, threads, fds, cpu s
         self.serial = 0
+        self.first_cycle_end: float | None = None   # --season: when the first full cycle ended
+        self.crashes = 0                            # --season: jobs the injected worker crash ended (500)
+        self.minutes_written = 0
+        self.started_at = time.strftime("%Y-%m-%dT%H:%M:%S")
 
     def tag(self, client: str) -> str:
         self.serial += 1
@@ -534,8 +571,51 @@ class Run:
             if not self.stopping:
                 self.stats.reconnects[transport] += 1
 
+    async def season_stream(self) -> None:
+        """The season's job stream (--season): hazard detection runs beside every job; the cycle maps,
+        navigates, hops and plans, follows a route; every third cycle a real crash in the native worker."""
+        conn = await self.open_tcp("SS-tcp")
+        anything = {OK, "400", "409", "423"}
+        await self.stream_job(conn, "hazard-start", "hazard-start --rate 2", {OK})
+        await self.stream_job(conn, "route-record", "route-record start --name soak", {OK})
+        for _ in range(2):
+            await self.stream_job(conn, "drive", "drive --forward 0.6", anything)
+        await self.stream_job(conn, "route-record", "route-record stop", {OK, "400"})
+        cycle = 0
+        while not self.stopping:
+            cycle += 1
+            if cycle % 3 == 1:
+                await self.stream_job(conn, "sim-fault", "sim-fault --device worker --kind segv", {OK})
+                outcome, _, _ = await self.stream_job(conn, "dem-update-tof (crash)", "dem-update-tof --pan -20:20",
+                                                      {OK, "500", "409", "423"})
+                self.stats.stream_cycles[f"dem-update-tof with a worker crash: {outcome}"] += 1
+                if outcome == "500":
+                    self.crashes += 1
+                    done, _, _ = await self.stream_job(conn, "continue", "continue", {OK, "400", "409"})
+                    self.stats.stream_cycles[f"continue after the crash: {done}"] += 1
+            else:
+                await self.stream_job(conn, "dem-update-tof", "dem-update-tof --pan -20:20", {OK, "409", "423"})
+            if self.stopping:
+                break
+            goal = "1.2,0.0" if cycle % 2 else "0.3,0.0"
+            await self.stream_job(conn, "navigate", f"navigate --to {goal} --tolerance 0.4 --max-steps 3", anything)
+            await self.stream_job(conn, "hop", f"hop --speed 1.0 --elevation 60 --heading {0 if cycle % 2 else 180}",
+                                  anything)
+            await self.stream_job(conn, "hop-plan", "hop-plan", anything)
+            await self.stream_job(conn, "route-follow", f"route-follow --name soak{' --reverse' if cycle % 2 else ''}",
+                                  anything)
+            if self.first_cycle_end is None:
+                self.first_cycle_end = self.stats.now()
+            self.stats.stream_cycles["season cycles"] += 1
+        await self.stream_job(conn, "hazard-stop", "hazard-stop", {OK, "409"})
+        await conn.drain(60)
+        await conn.close()
+
     async def job_stream(self) -> None:
         """One client keeps the job slot busy: a job, the next as soon as the reply is in."""
+        if self.args.season:
+            await self.season_stream()
+            return
         rng = random.Random(7)
         conns = {"tcp": await self.open_tcp("JS-tcp"), "zmq": await self.open_zmq("JS-zmq")}
         n = 0
@@ -567,11 +647,12 @@ class Run:
             return await conn.send(f"@{tag} {line}\n".encode(), tag, "stream", label, expect, want_future=True)
         return await conn.send(frame(id=tag, line=line), tag, "stream", label, expect, want_future=True)
 
-    async def stream_job(self, conn: Connection, label: str, line: str) -> tuple[str, str, str]:
+    async def stream_job(self, conn: Connection, label: str, line: str,
+                         expect: set[str] | None = None) -> tuple[str, str, str]:
         """Send until the server takes it (busy and sleeping are other clients' doing): its final reply."""
         for _ in range(5000):
             start = time.perf_counter()
-            p = await self.stream_request(conn, label, line, {OK, "409", "423"})
+            p = await self.stream_request(conn, label, line, {OK, "409", "423"} | (expect or set()))
             outcome, reason, text = await p.future
             if outcome == OK:
                 self.stats.jobs.append((self.stats.now(), label, time.perf_counter() - start))
@@ -636,7 +717,18 @@ class Run:
             except (OSError, AttributeError):
                 return
             self.samples.append((self.stats.now(), rss, threads, fds, cpu))
+            if self.args.season and self.stats.now() >= 60 * (self.minutes_written + 1):
+                self.minutes_written += 1
+                self.write_minute(rss, threads, fds)
             await asyncio.sleep(self.args.sample)
+
+    def write_minute(self, rss: float, threads: int, fds: int) -> None:
+        """A line per minute in soak.jsonl: what a killed soak leaves behind."""
+        record = {"soak": self.started_at, "minute": self.minutes_written, "rss_mib": round(rss, 1),
+                  "threads": threads, "open_files": fds, "cycles": self.stats.stream_cycles["season cycles"],
+                  "crashes": self.crashes, "jobs": {f"{lb} {o}": n for (lb, o), n in self.stats.labels.items()
+                                                    if lb in SEASON_LABELS}}
+        append_result(record)
 
     async def run(self) -> None:
         self.stats.t0 = time.perf_counter()
@@ -755,7 +847,7 @@ def report(run: Run, quit_reply: str, exit_code: int | None, base: Path, config_
 
     print()
     print(f"job stream: durations (ms) of OK jobs   {'first min':>10}{'last min':>10}{'ratio':>8}{'count':>8}")
-    for label in ("move-ptu", "grab-tof", "dem-update-tof", "reset", "reinit"):
+    for label in ("move-ptu", "grab-tof", "dem-update-tof", "reset", "reinit", *SEASON_LABELS[3:7]):
         a = [d for at, lb, d in stats.jobs if lb == label and at < 60]
         b = [d for at, lb, d in stats.jobs if lb == label and duration - 60 <= at < duration]
         n = sum(1 for _, lb, _ in stats.jobs if lb == label)
@@ -770,6 +862,11 @@ def report(run: Run, quit_reply: str, exit_code: int | None, base: Path, config_
     print()
     samples = run.samples
     warm = args.warmup
+    if args.season:   # the reference: the end of the first full cycle of the season's work
+        if run.first_cycle_end is None:
+            failures.append("the season's first cycle never ended")
+        else:
+            warm = run.first_cycle_end
     loaded = [s for s in samples if s[0] < duration]
     start_rss = window_median(samples, warm, warm + 30)
     end_rss = window_median(samples, duration - 30, duration)
@@ -791,6 +888,9 @@ def report(run: Run, quit_reply: str, exit_code: int | None, base: Path, config_
         print(line)
         t_first = next((s for s in loaded if s[0] >= warm), loaded[0])
         t_last = loaded[-1]
+        if args.season and (t_last[2] > t_first[2] + 2 or t_last[3] > t_first[3] + 4):
+            failures.append(f"threads {t_first[2]} -> {t_last[2]} or open files {t_first[3]} -> {t_last[3]} grew "
+                            "after the first cycle")
         print(f"  threads {t_first[2]} -> {t_last[2]}, open files {t_first[3]} -> {t_last[3]}, "
               f"server CPU {100 * (t_last[4] - loaded[0][4]) / max(1e-9, t_last[0] - loaded[0][0]):.0f} % of one core")
         if samples[-1][0] >= duration:
@@ -828,6 +928,13 @@ def report(run: Run, quit_reply: str, exit_code: int | None, base: Path, config_
             shown.add(lines[end])
             print("  traceback: " + "\n  ".join(lines[max(0, end - 6):end + 1]))
     print(f"quit: {quit_reply!r}; server exit status {exit_code}")
+    removed = [line for line in text.splitlines() if "retention (" in line and " removed " in line]
+    if args.season:
+        print(f"season: {stats.stream_cycles['season cycles']} cycles, {run.crashes} jobs ended by an injected "
+              f"worker crash; the retention rule removed products {len(removed)} times"
+              + "".join(f"\n  {line[-160:]}" for line in removed[:3]))
+        if run.crashes == 0:
+            failures.append("no injected worker crash ended a job: the worker was never restarted")
 
     if sum(left.values()):
         failures.append(f"{sum(left.values())} requests unanswered: {left_examples[:5]}")
@@ -851,6 +958,14 @@ def report(run: Run, quit_reply: str, exit_code: int | None, base: Path, config_
         for text in stats.unexpected:
             print("  " + text)
     print()
+    if args.season:
+        append_result({"soak": run.started_at, "minutes": args.minutes, "verdict": "FAIL" if failures else "PASS",
+                       "failures": failures, "rss_growth_pct": round(growth, 2) if growth == growth else None,
+                       "rss_reference_mib": round(start_rss, 1), "rss_end_mib": round(end_rss, 1),
+                       "cycles": stats.stream_cycles["season cycles"], "crashes": run.crashes,
+                       "retention_removals": len(removed),
+                       "replies": {"sent": sum(stats.sent.values()), "received": sum(stats.received.values()),
+                                   "unanswered": sum(left.values()), "duplicated": sum(stats.duplicates.values())}})
     if failures:
         print("FAIL")
         for text in failures:
@@ -898,6 +1013,8 @@ def main() -> int:
     parser.add_argument("--log-max-mb", type=float, default=0.1, help="server.toml log_file_max_mb for the run")
     parser.add_argument("--logs-kept", type=int, default=3, help="server.toml log_files_kept for the run")
     parser.add_argument("--keep", action="store_true", help="keep the temporary directory and say where")
+    parser.add_argument("--season", action="store_true", help="the season's job stream beside hazard-start, with "
+                        "worker crashes and a storage cap (issue 46); figures to tests/bench/results/soak.jsonl")
     args = parser.parse_args()
     if args.minutes * 60 < args.warmup + 60:
         parser.error(f"--minutes must leave a minute after the {args.warmup:g} s warm-up")
@@ -906,7 +1023,13 @@ def main() -> int:
     base = Path(tmp)
     status = 1
     try:
-        config_dir = write_configs(base / "configs", {"server.toml": server_toml(args)})
+        extra = {"server.toml": server_toml(args)}
+        if args.season:
+            # a small cap, so the retention rule removes products during the soak
+            extra["server.toml"] = re.sub(r"(?m)^storage\.max_gib\s*=.*$", "storage.max_gib = 0.05",
+                                          extra["server.toml"])
+            extra["hopping.toml"] = HOPPING
+        config_dir = write_configs(base / "configs", extra)
         server = ServerProcess(data_dir=base / "data", config_dir=config_dir).start()
         print(f"rvs-server pid {server.proc.pid} ready on tcp {server.host}:{server.port}, zmq {server.zmq}; "
               f"running {args.minutes:g} min in {base}", flush=True)
