@@ -25,17 +25,18 @@ A campaign file (TOML) names the runs:
                                   #   the last line of that command name: "grab-tof.product")
     rows = "dem:product.json:grid.rows"   # a JSON path in a file of the product that line wrote
 
-A measurement campaign adds Python where a table is not enough (tests/bench's campaigns are such
-files: clients/campaigns/navigation.toml):
+A measurement campaign adds Python where a table is not enough (tests/bench/campaigns/navigation.toml):
 
-    runs_from = "clients.scoring.navigation:runs"   # MODULE:FUNCTION(**runs_args) -> the runs (dicts),
-    [runs_args]                                     #   appended to [[run]] and [product]; a run may
-    scenes = 10                                     #   hold `world` (world.toml options over [world])
-                                                    #   and `configs` ({"navigation.toml": {...}})
-    score = "clients.scoring.navigation:score"      # MODULE:FUNCTION(run, data_dir) -> more columns,
-                                                    #   computed in the worker after the mission
-    report = "clients.scoring.navigation:report"    # MODULE:FUNCTION(records) -> the text of
-                                                    #   DIR/report.md and of `rvs campaign --report`
+    runs_from = "../navigation_scoring.py:runs"     # FUNCTION(**runs_args) -> the runs (dicts), appended
+    [runs_args]                                     #   to [[run]] and [product]; a run may hold `world`
+    scenes = 10                                     #   (world.toml options over [world]) and `configs`
+                                                    #   ({"navigation.toml": {...}})
+    score = "../navigation_scoring.py:score"        # FUNCTION(run, data_dir) -> more columns, computed
+                                                    #   in the worker after the mission
+    report = "../navigation_scoring.py:report"      # FUNCTION(records) -> the text of DIR/report.md
+
+A hook is FILE.py:FUNCTION (relative to the campaign file; workers on other machines need the same
+path) or MODULE:FUNCTION (importable where the campaign runs).
 
 Each run is a real `rvs-server` process (`--port 0`, its ready line read; `--web-port 0`: no web
 view) with its own configuration and data directories under OUT/runs/RUN/, driven by the mission
@@ -64,6 +65,7 @@ import argparse
 import csv
 import hashlib
 import importlib
+import importlib.util
 import io
 import itertools
 import json
@@ -124,19 +126,22 @@ class Campaign:
     @property
     def settings(self) -> dict[str, Any]:
         """What makes two runs of the same name comparable (RunLog's `settings`)."""
-        basis = [self.mission_text, self.world, self.collect, self.sim_speed] + ([self.score] if self.score else [])
+        # The score hook by its file's name and function: the same campaign checked out elsewhere resumes.
+        basis = [self.mission_text, self.world, self.collect, self.sim_speed] + \
+            ([self.score.rsplit("/", 1)[-1]] if self.score else [])
         digest = hashlib.sha256(json.dumps(basis, sort_keys=True).encode()).hexdigest()[:16]
         return {"campaign": self.name, "digest": digest}
 
 
 def hook(spec: str, where: str) -> Callable[..., Any]:
-    """The function a campaign file names as MODULE:FUNCTION (importable where the campaign runs)."""
-    module_name, colon, name = spec.partition(":")
+    """The function a campaign file names as FILE.py:FUNCTION (an absolute path by now: load_campaign
+    resolves it) or MODULE:FUNCTION."""
+    module_name, colon, name = spec.rpartition(":")
     if not colon or not module_name or not name:
-        raise CampaignError(f"{where}: {spec!r}: expected MODULE:FUNCTION")
+        raise CampaignError(f"{where}: {spec!r}: expected FILE.py:FUNCTION or MODULE:FUNCTION")
     try:
-        function = getattr(importlib.import_module(module_name), name)
-    except (ImportError, AttributeError) as exc:
+        function = getattr(_hook_module(module_name), name)
+    except (ImportError, AttributeError, OSError) as exc:
         raise CampaignError(f"{where}: {spec!r}: {exc}") from None
     if not callable(function):
         raise CampaignError(f"{where}: {spec!r} is not a function")
@@ -170,6 +175,9 @@ def load_campaign(path: str | Path) -> Campaign:
             raise CampaignError(f"{path.name}: every key of [product] must be a non-empty list")
         names = list(product)
         runs += [dict(zip(names, combination, strict=True)) for combination in itertools.product(*product.values())]
+    for key in ("runs_from", "score", "report"):
+        if key in data:
+            data[key] = _resolved(str(data[key]), path.parent)
     if "runs_from" in data:
         made = hook(str(data["runs_from"]), f"{path.name} runs_from")(**dict(data.get("runs_args", {})))
         if not isinstance(made, list) or not all(isinstance(run, dict) for run in made):
@@ -233,6 +241,34 @@ def parse_collect(spec: str) -> tuple[str, str, str | None]:
     if not dot or not tag or not name:
         raise ValueError(f"{spec!r}: expected TAG.FIELD or TAG:FILE:json.path")
     return tag, name, None
+
+
+def _hook_module(name: str) -> Any:
+    if not name.endswith(".py"):
+        return importlib.import_module(name)
+    path = Path(name)
+    key = f"rvs_campaign_hook_{hashlib.sha256(str(path).encode()).hexdigest()[:12]}"
+    if key in sys.modules:
+        return sys.modules[key]
+    spec = importlib.util.spec_from_file_location(key, path)
+    if spec is None or spec.loader is None:
+        raise ImportError(f"cannot load {path}")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[key] = module
+    try:
+        spec.loader.exec_module(module)
+    except BaseException:
+        del sys.modules[key]
+        raise
+    return module
+
+
+def _resolved(spec: str, folder: Path) -> str:
+    """A FILE.py:FUNCTION hook with its file made absolute (relative to the campaign file)."""
+    module_name, colon, name = spec.rpartition(":")
+    if colon and module_name.endswith(".py"):
+        return f"{(folder / module_name).resolve()}:{name}"
+    return spec
 
 
 # ---------------------------------------------------------------------------------------------

@@ -37,8 +37,10 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO / "tests"))
 sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / "tests" / "bench"))
+from navigation_scoring import scene_config, score_product, summarise, usable_scenes  # noqa: E402
+
 from clients.run_log import RunLog, report  # noqa: E402
-from clients.scoring.navigation import scene_config, score_product, summarise, usable_scenes  # noqa: E402
 
 from conftest import ServerProcess, pairs  # noqa: E402
 
@@ -46,7 +48,7 @@ RESULTS = REPO / "tests" / "bench" / "results" / "navigation.jsonl"
 
 
 def run(seed: int, scene: dict, sensor: str, size: float, out: Path, sim_speed: float, orient: bool = True) -> dict:
-    """One navigate on the scene of `seed` (clients/scoring/navigation.py: its goal and world), scored."""
+    """One navigate on the scene of `seed` (navigation_scoring.py: its goal and world), scored."""
     goal = tuple(scene["goal"])
     root = out / f"scene{seed}-{sensor}{'' if orient else '-no-orient'}"
     shutil.rmtree(root, ignore_errors=True)

@@ -1,5 +1,5 @@
 """A measurement campaign's hooks (clients/campaign.py: runs_from, score, report; a run's own world and
-configs) and the navigation campaign's scoring (clients/scoring/navigation.py), without Dask: one run
+configs) and the navigation campaign's scoring (tests/bench/navigation_scoring.py), without Dask: one run
 played in-process as a worker would, and the scores of a navigate product written by hand."""
 from __future__ import annotations
 
@@ -9,9 +9,11 @@ from pathlib import Path
 import pytest
 
 from clients import campaign as C
-from clients.scoring import navigation as N
 
 from conftest import REPO
+
+CAMPAIGNS = REPO / "tests" / "bench" / "campaigns"
+N = C._hook_module(str(REPO / "tests" / "bench" / "navigation_scoring.py"))   # as the campaign's hooks load it
 
 SCENES = {"34": {"101": {"goal": [5.5, -8.25], "optimal_m": 11.0, "goal_clearance_m": 0.9, "cover": 0.17},
                  "102": False,
@@ -45,10 +47,11 @@ def test_a_run_brings_its_own_world_and_settings_and_is_scored_in_the_worker(tmp
 def test_the_navigation_campaign_file_names_its_runs_and_a_bad_hook_is_refused(tmp_path):
     known = tmp_path / "seeds.json"
     known.write_text(json.dumps(SCENES))
-    text = (REPO / "clients" / "campaigns" / "navigation.toml").read_text()
+    text = (CAMPAIGNS / "navigation.toml").read_text()
     text = text.replace('known = "tests/bench/results/navigation-seeds.json"', f'known = "{known}"')
     text = text.replace("scenes = 10", "scenes = 2")
-    (tmp_path / "navigation.rvs").write_text((REPO / "clients" / "campaigns" / "navigation.rvs").read_text())
+    text = text.replace("../navigation_scoring.py", str(REPO / "tests" / "bench" / "navigation_scoring.py"))
+    (tmp_path / "navigation.rvs").write_text((CAMPAIGNS / "navigation.rvs").read_text())
     (tmp_path / "navigation.toml").write_text(text)
     loaded = C.load_campaign(tmp_path / "navigation.toml")
     assert len(loaded.runs) == 2 * 2 * 2      # seeds 101 and 103 (102 is boxed in), two sensors, orient off/on
@@ -56,9 +59,9 @@ def test_the_navigation_campaign_file_names_its_runs_and_a_bad_hook_is_refused(t
     assert first["seed"] == 101 and first["GOAL"] == "5.5,-8.25"
     assert first["world"]["rocks"] == N.scene_config(101, 34.0)["rocks"]
     assert {r["configs"]["navigation.toml"]["orient"] for r in loaded.runs} == {False, True}
-    assert loaded.score == "clients.scoring.navigation:score"
-    (tmp_path / "bad.toml").write_text(text.replace("navigation:score", "navigation:nothing"))
-    with pytest.raises(C.CampaignError, match="navigation:nothing"):
+    assert loaded.score == f"{REPO / 'tests' / 'bench' / 'navigation_scoring.py'}:score"
+    (tmp_path / "bad.toml").write_text(text.replace("navigation_scoring.py:score", "navigation_scoring.py:nothing"))
+    with pytest.raises(C.CampaignError, match="navigation_scoring.py:nothing"):
         C.load_campaign(tmp_path / "bad.toml")
 
 

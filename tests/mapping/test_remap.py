@@ -36,14 +36,14 @@ def stored(tmp_path_factory):
     return root, Path(reply["path"]), reply
 
 
-def test_a_stored_map_remapped_stricter_on_dask_with_no_device(stored, capsys):
+def test_a_stored_map_remapped_stricter_on_dask_with_no_device(stored, capfd):
     root, source, reply = stored
     files = manifest(source)["files"]
     assert {"views/acquire_tof.npz", "views/views_plan.npz", "views/context.json"} <= set(files)
     workflow = strict_workflow(root)
 
     assert rvs(["remap", str(source), "--workflow", str(workflow), "--workers", "1"]) == 0
-    line = capsys.readouterr().out.strip().splitlines()[-1]
+    line = capfd.readouterr().out.strip().splitlines()[-1]
     assert line.startswith("scan -> scan-remap known "), line
     remapped = source.parent / "scan-remap"
     made = manifest(remapped)
@@ -64,7 +64,7 @@ def test_a_stored_map_remapped_stricter_on_dask_with_no_device(stored, capsys):
     assert (remapped / "views" / "acquire_tof.npz").is_file()
 
 
-def test_remap_refuses_what_it_cannot_do_and_writes_nothing(stored, tmp_path, capsys):
+def test_remap_refuses_what_it_cannot_do_and_writes_nothing(stored, tmp_path, capfd):
     root, source, _ = stored
     products = source.parent
     before = sorted(p.name for p in products.iterdir())
@@ -82,7 +82,7 @@ def test_remap_refuses_what_it_cannot_do_and_writes_nothing(stored, tmp_path, ca
     assert sorted(p.name for p in products.iterdir()) == before
 
     assert rvs(["remap", str(tmp_path / "nothing"), "--workflow", str(update)]) == 2
-    assert "not a product folder" in capsys.readouterr().err
+    assert "not a product folder" in capfd.readouterr().err
 
 
 def _bare(folder: Path) -> Path:

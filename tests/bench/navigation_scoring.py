@@ -11,7 +11,8 @@ CLEARANCE_M) and the goal has room for the rover. A run is scored from its navig
 - length_ratio: the true driven length over the optimal path on the true map;
 - localisation_error_m: |estimated - true| position at the end, beside odometry_error_m (dead reckoning).
 
-Used by clients/campaigns/navigation.toml (`rvs campaign`, on Dask) and tests/bench/measure_navigation.py.
+Used by tests/bench/campaigns/navigation.toml (`rvs campaign`, on Dask: its hooks name this file) and by
+tests/bench/measure_navigation.py.
 """
 from __future__ import annotations
 
@@ -176,7 +177,7 @@ def summarise(results: list[dict], sensor: str) -> str:
     return "\n".join(lines)
 
 
-# -- the campaign file's hooks (clients/campaigns/navigation.toml) -------------------------------------
+# -- the campaign file's hooks (tests/bench/campaigns/navigation.toml) -------------------------------------
 
 
 def runs(scenes: int = 10, first_seed: int = 101, sensors: list[str] | None = None, orient: list[bool] | None = None,
