@@ -69,3 +69,6 @@ def test_a_frame_refreshes_only_its_window_and_points_outside_are_counted():
     outside_window[rows, cols] = False
     assert (live.code[outside_window] == 255).all()         # nothing known there, nothing recomputed
     assert live.insert(beyond) is None
+    twin = live.copy()                                       # independent: a frame into it leaves the map
+    twin.insert(patch + [0.0, 0.0, 0.5])
+    assert not np.array_equal(twin.heights, live.heights, equal_nan=True) and twin.counts.sum() == 2 * live.counts.sum()

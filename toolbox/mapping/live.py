@@ -62,6 +62,12 @@ class LiveMap:
     def empty(cls, spec: GridSpec, config: HazardConfig = HazardConfig()) -> LiveMap:
         return cls(Dem(spec, np.full(spec.shape, np.nan, np.float32), np.zeros(spec.shape, np.int32)), config)
 
+    def copy(self) -> LiveMap:
+        """An independent map as this one stands (its arrays copied, no hazard map recomputed)."""
+        twin = object.__new__(LiveMap)
+        twin.__dict__.update({k: v.copy() if isinstance(v, np.ndarray) else v for k, v in self.__dict__.items()})
+        return twin
+
     @property
     def maps(self) -> HazardMaps:
         return HazardMaps(self.slope, self.step, self.roughness, self.code)
