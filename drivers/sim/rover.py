@@ -183,8 +183,7 @@ class Rover:
                          min(grid.cols, math.ceil((xs.max() - grid.x_min) / grid.cell)) + 1)
         rows = np.arange(max(0, math.floor((ys.min() - grid.y_min) / grid.cell)),
                          min(grid.rows, math.ceil((ys.max() - grid.y_min) / grid.cell)) + 1)
-        block = np.ix_(rows, cols)
-        tall = (self.world.heights[block] - self.world.ground[block]) > step_height
+        tall = self.world.protrusion_window(_span(rows), _span(cols)) > step_height
         if not tall.any():
             return math.inf
         x, y = grid.x_of(cols)[None, :], grid.y_of(rows)[:, None]
@@ -210,8 +209,7 @@ class Rover:
         across = -(x - self.x) * sin_h + (y - self.y) * cos_h
         c = self.config
         inside = (np.abs(along) <= c.body_length_m / 2) & (np.abs(across) <= c.body_width_m / 2)
-        block = np.ix_(rows, cols)
-        return (self.world.heights[block] - self.world.ground[block])[inside]
+        return self.world.protrusion_window(_span(rows), _span(cols))[inside]
 
 
 def _settled_pose(contacts: np.ndarray) -> np.ndarray:
@@ -244,3 +242,8 @@ def _perturbed(mount: SensorMount, error: MountError, rng: np.random.Generator) 
     return SensorMount(
         position_m=tuple(float(v) for v in np.add(mount.position_m, rng.normal(0.0, error.translation_m, 3))),
         rotation_deg=tuple(float(v) for v in np.add(mount.rotation_deg, rng.normal(0.0, error.rotation_deg, 3))))
+
+
+def _span(index: np.ndarray) -> slice:
+    """The slice of a run of consecutive grid indices (empty for none)."""
+    return slice(int(index[0]), int(index[-1]) + 1) if len(index) else slice(0, 0)

@@ -21,7 +21,6 @@ import copy
 import math
 import threading
 from dataclasses import dataclass
-from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -29,6 +28,8 @@ import numpy as np
 from . import albedo as albedo_model
 from .config import Sun, WorldConfig
 from .grid import GridSpec, bilinear, remap_bilinear
+from .heap import give_back_free_heap
+from .heights import TopHeights
 from .lighting import in_sunlight
 from .mesh import Stacked, TriangleSurface, grid_surface_parts
 from .noise import DetailTexture
@@ -46,24 +47,33 @@ class _Truth:
     surface: TriangleSurface
     rock_of_triangle: np.ndarray
     rocks: np.ndarray
-    built_heights: np.ndarray          # the built world's, before any added obstacle
+    built_heights: TopHeights          # the built world's, before any added obstacle
     obstacles: tuple[Obstacle, ...]
 
-    @cached_property
     def heights(self) -> np.ndarray:
-        """The built heights with the added obstacles' patches, made when first asked for (a walking
-        person makes a new state every frame; most are only rendered, never asked for heights)."""
-        if not self.obstacles:
-            return self.built_heights
-        heights = self.built_heights.copy()
+        """The built heights with the added obstacles' patches, as a new dense grid."""
+        heights = self.built_heights.dense()
         flat = heights.reshape(-1)
         for obstacle in self.obstacles:
             flat[obstacle.points] = np.maximum(flat[obstacle.points], obstacle.tops)
         return heights
 
+    def heights_window(self, rows: slice, cols: slice) -> np.ndarray:
+        """`heights()[rows, cols]`, made from the window alone."""
+        heights = self.built_heights.window(rows, cols)
+        width = self.built_heights.ground.shape[1]
+        r0, r1, _ = rows.indices(self.built_heights.ground.shape[0])
+        c0, c1, _ = cols.indices(width)
+        for obstacle in self.obstacles:
+            row, col = np.divmod(obstacle.points, width)
+            inside = (row >= r0) & (row < r1) & (col >= c0) & (col < c1)
+            row, col = row[inside] - r0, col[inside] - c0
+            heights[row, col] = np.maximum(heights[row, col], obstacle.tops[inside])
+        return heights
+
 
 MESH_BLOCK_CELLS = 256       # RTIN root block: the largest triangle leg, 2.56 m at 1 cm cells
-FILE_FORMAT = "rvs-sim-world/1"
+FILE_FORMAT = "rvs-sim-world/2"
 
 
 def _streams(seed: int) -> dict[str, np.random.Generator]:
@@ -84,6 +94,8 @@ class World:
             its surface (exact, from the rock meshes), else `ground` (within mesh_tolerance_m of the
             ground mesh).
             Added obstacles count as rocks here (the maximum of their surface and what was there).
+            Kept sparse (heights.py): `heights` makes the whole grid anew on each call,
+            `heights_window(rows, cols)` only the part asked for.
         albedo_grid: float32 albedo of the regolith per grid point (rocks have their own, see albedo_at).
         rocks: structured array, one row per rock (see rocks.ROCK_TABLE_DTYPE): the world's own, then
             one per added obstacle in the order of `obstacles()`.
@@ -91,15 +103,12 @@ class World:
         rock_of_triangle: rock index of each surface triangle, -1 for ground.
     """
 
-    def __init__(self, config: WorldConfig, grid: GridSpec, ground: np.ndarray, heights: np.ndarray,
-                 albedo_grid: np.ndarray, rocks: np.ndarray, ground_triangles: np.ndarray,
-                 rock_meshes: RockMeshes):
+    def __init__(self, config: WorldConfig, grid: GridSpec, heights: TopHeights, albedo_grid: np.ndarray,
+                 rocks: np.ndarray, surface: TriangleSurface, rock_of_triangle: np.ndarray):
         self.config = config
         self.sun = config.sun
         self.grid = grid
-        self.ground, self.albedo_grid = ground, albedo_grid
-        self.ground_triangles, self.rock_meshes = ground_triangles, rock_meshes
-        surface, rock_of_triangle = _truth_surface(grid, ground, ground_triangles, rock_meshes)
+        self.ground, self.albedo_grid = heights.ground, albedo_grid
         self._built = _Truth(surface, rock_of_triangle, rocks, heights, ())
         self._state = self._built
         self._changing = threading.Lock()    # one change at a time; readers never wait
@@ -124,7 +133,12 @@ class World:
 
     @property
     def heights(self) -> np.ndarray:
-        return self._state.heights
+        return self._state.heights()
+
+    def heights_window(self, rows: slice, cols: slice) -> np.ndarray:
+        """`heights[rows, cols]` (unit-step slices of grid-point rows and columns), made from the
+        window alone."""
+        return self._state.heights_window(rows, cols)
 
     def snapshot(self) -> World:
         """This world as it is now, for a reader asking several questions (a render): it shares every
@@ -250,7 +264,7 @@ class World:
         rock_of_triangle = Stacked(built.rock_of_triangle, np.concatenate(
             [np.full(len(o.triangles), first + i, np.int32) for i, o in enumerate(obstacles)]))
         rocks = np.concatenate([built.rocks, np.array([o.row for o in obstacles], dtype=ROCK_TABLE_DTYPE)])
-        self._state = _Truth(surface, rock_of_triangle, rocks, built.heights, obstacles)
+        self._state = _Truth(surface, rock_of_triangle, rocks, built.built_heights, obstacles)
 
     # ----------------------------------------------------------------------------- building
     @classmethod
@@ -263,11 +277,14 @@ class World:
         ground_triangles = extract_triangles(vertex_errors(ground, MESH_BLOCK_CELLS), config.mesh_tolerance_m,
                                              MESH_BLOCK_CELLS)
         bodies, meshes, tops = place_rocks(ground, grid, config.rocks, rng["rocks"])
-        heights = ground.copy()
-        heights.ravel()[tops.points] = tops.heights
         albedo_grid = albedo_model.regolith_albedo(grid, config.albedo, rng["albedo"])
         rocks = rock_table(bodies, meshes, grid, ground, tops)
-        return cls(config, grid, ground, heights, albedo_grid, rocks, ground_triangles, meshes)
+        surface, rock_of_triangle = _truth_surface(grid, ground, ground_triangles, meshes)
+        world = cls(config, grid, TopHeights.of(ground, tops.points, tops.heights), albedo_grid, rocks, surface,
+                    rock_of_triangle)
+        del ground_triangles, bodies, meshes, tops
+        give_back_free_heap()    # the build's temporaries: a few hundred MiB the allocator would keep
+        return world
 
     # ----------------------------------------------------------------------------- save / load
     def save(self, path: str | Path) -> Path:
@@ -279,25 +296,25 @@ class World:
             ids = ", ".join(str(o.id) for o in self._state.obstacles)
             raise ValueError(f"the world has added obstacles ({ids}); a world file holds the built world only: "
                              f"clear_obstacles() first, or add them again after World.load")
-        m = self.rock_meshes
+        built = self._built
         np.savez(path, format=np.array(FILE_FORMAT), config=np.array(self.config.model_dump_json()),
-                 sun=np.array(self.sun.model_dump_json()), ground=self.ground, heights=self.heights,
-                 albedo=self.albedo_grid, rocks=self.rocks, ground_triangles=self.ground_triangles,
-                 rock_vertices=m.vertices, rock_triangles=m.triangles, rock_of_triangle=m.rock_of_triangle,
-                 rock_of_vertex=m.rock_of_vertex)
+                 sun=np.array(self.sun.model_dump_json()), ground=self.ground, top_points=built.built_heights.points,
+                 tops=built.built_heights.tops, albedo=self.albedo_grid, rocks=self.rocks,
+                 vertices=built.surface.vertices, triangles=built.surface.triangles,
+                 rock_of_triangle=built.rock_of_triangle)
         return path
 
     @classmethod
     def load(cls, path: str | Path) -> World:
         with np.load(Path(path), allow_pickle=False) as data:
             if str(data["format"]) != FILE_FORMAT:
-                raise ValueError(f"{path}: not a {FILE_FORMAT} file (format {data['format']})")
+                raise ValueError(f"{path}: not a {FILE_FORMAT} file (format {data['format']}): save the world "
+                                 f"again with python -m drivers.sim save")
             config = WorldConfig.model_validate_json(str(data["config"]))
             grid = GridSpec.centred(*config.size_m, config.cell_m, MESH_BLOCK_CELLS)
-            meshes = RockMeshes(data["rock_vertices"], data["rock_triangles"], data["rock_of_triangle"],
-                                data["rock_of_vertex"])
-            world = cls(config, grid, data["ground"], data["heights"], data["albedo"],
-                        data["rocks"].astype(ROCK_TABLE_DTYPE), data["ground_triangles"], meshes)
+            heights = TopHeights(data["ground"], data["top_points"], data["tops"])
+            world = cls(config, grid, heights, data["albedo"], data["rocks"].astype(ROCK_TABLE_DTYPE),
+                        TriangleSurface(data["vertices"], data["triangles"]), data["rock_of_triangle"])
             world.sun = Sun.model_validate_json(str(data["sun"]))
         return world
 
@@ -411,18 +428,24 @@ class World:
         """
         if cell < self.grid.cell - 1e-12:
             raise ValueError(f"cell {cell} m is finer than the world's grid ({self.grid.cell} m)")
-        heights = self.heights
-        return self._block_max(lambda rows, cols: heights[rows, cols] - self.ground[rows, cols], cell, x_range,
-                               y_range) > step_height
+        state = self._state
+        return self._block_max(lambda rows, cols: state.heights_window(rows, cols) - self.ground[rows, cols], cell,
+                               x_range, y_range) > step_height
 
     def protrusion(self) -> np.ndarray:
         """Rock protrusion above the rock-free ground at every grid point (float32, 0 off rocks)."""
         return self.heights - self.ground
 
+    def protrusion_window(self, rows: slice, cols: slice) -> np.ndarray:
+        """`protrusion()[rows, cols]`, made from the window alone."""
+        return self.heights_window(rows, cols) - self.ground[rows, cols]
+
     def rock_cover(self) -> float:
         """Measured cumulative fractional area of rocks: the share of grid points a rock tops."""
-        heights = self.heights
-        return float(np.count_nonzero(heights > self.ground)) / heights.size
+        state = self._state
+        if state.obstacles:
+            return float(np.count_nonzero(self.heights > self.ground)) / self.ground.size
+        return state.built_heights.topped() / self.ground.size
 
     # ----------------------------------------------------------------------------- helpers
     def _triangle_under(self, x: np.ndarray, y: np.ndarray, surface: TriangleSurface) -> np.ndarray:
