@@ -20,10 +20,10 @@ from urllib.parse import quote
 from aiohttp import web
 
 from rvs_server.dispatch import DispatchHost, Request, Session
-from rvs_server.protocol import RvsError
+from rvs_server.protocol import BadRequest, RvsError, format_error, format_ok, parse_line
 from rvs_server.transports.tcp import claim_tcp_port
 
-from .access import allowed
+from .access import allowed, login_cookie, same_origin, token_matches
 from .events import KEEPALIVE_S, EventHub, _json
 from .products import MAX_LIMIT, BadName, newest_manifests, product_file
 
@@ -33,11 +33,15 @@ STATIC = Path(__file__).resolve().parent / "static"
 _STATIC_REF = re.compile(r'\b(src|href)="(/static/[^"?#]+)"')  # the page's own assets
 DEFAULT_LIMIT = 20
 STATUS_TIMEOUT_S = 10.0
+MAX_COMMAND_BYTES = 8192          # a command line's limit on the text port
+LOGIN_FAILED_PAUSE_S = 0.5        # a wrong token waits: guessing by the thousand takes hours
 SECURITY_HEADERS = {
     # The page loads nothing from any other host, and nothing served is guessed into another type.
     "Content-Security-Policy": "default-src 'self'; img-src 'self' data:; style-src 'self' 'unsafe-inline'",
     "X-Content-Type-Options": "nosniff",
-    "Referrer-Policy": "no-referrer",
+    # No URL leaves for another host; and the page's own requests keep their Origin (a browser sends
+    # "Origin: null" under no-referrer), which is how a command is known to come from this page.
+    "Referrer-Policy": "same-origin",
 }
 
 
@@ -92,6 +96,8 @@ class WebView:
         app.router.add_get("/api/products", self._products)
         app.router.add_get("/products/{name}/{path:.+}", self._product_file)
         app.router.add_get("/events", self._events)
+        app.router.add_post("/api/command", self._command)
+        app.router.add_post("/login", self._login)
         app.router.add_static("/static/", STATIC, follow_symlinks=False)
         self.runner = web.AppRunner(app, access_log=None, shutdown_timeout=1.0)  # tokens stay out of logs
         await self.runner.setup()
@@ -116,9 +122,13 @@ class WebView:
                      handler: Callable[[web.Request], Awaitable[web.StreamResponse]]) -> web.StreamResponse:
         if not self.server.ready:
             response: web.StreamResponse = _error(503, "starting", "the server is not ready yet")
-        elif not allowed(request, self.server.token):
-            response = _error(401, "unauthorized", "this server requires a token: send Authorization: Bearer "
-                              "TOKEN or ?token=TOKEN", **{"WWW-Authenticate": "Bearer"})
+        elif not allowed(request, self.server.token) and not (request.path == "/login" and request.method == "POST"):
+            if request.path == "/" and request.method == "GET":   # a browser: the sign-in form
+                response = _login_page(401, "")
+            else:
+                response = _error(401, "unauthorized", "this server requires a token: send Authorization: Bearer "
+                                  "TOKEN, the rvs_token cookie that POST /login sets, or ?token=TOKEN",
+                                  **{"WWW-Authenticate": "Bearer"})
         else:
             try:
                 response = await handler(request)
@@ -151,6 +161,58 @@ class WebView:
         except RvsError as exc:
             return _error(exc.code if 400 <= exc.code < 600 else 500, exc.reason, exc.message)
         return web.json_response(data, dumps=_dumps, headers={"Cache-Control": "no-store"})
+
+    async def _command(self, request: web.Request) -> web.Response:
+        """One command line through the one dispatcher, as an authenticated text client would send it:
+        `{"line": "move-ptu --pan 10"}` in, `{"reply": "OK ...", "ok": true, "code": 200, "data": {...}}`
+        out once the final reply is there (a job's progress goes to /events as for every client)."""
+        if request.content_type != "application/json":
+            return _error(415, "unsupported-media-type", f"a command is a JSON body {{\"line\": \"...\"}}, "
+                          f"not {request.content_type or 'no content type'}")
+        if not same_origin(request):
+            return _error(403, "cross-origin", f"a command must come from this server's own page, not from "
+                          f"{request.headers.get('Origin')}")
+        body = await request.content.read(4 * MAX_COMMAND_BYTES)   # room for JSON's escapes
+        future: asyncio.Future = asyncio.get_running_loop().create_future()
+        try:
+            if not request.content.at_eof():
+                raise BadRequest(f"body over {4 * MAX_COMMAND_BYTES} bytes: a line is at most {MAX_COMMAND_BYTES}",
+                                 reason="line-too-long")
+            message = json.loads(body.decode("utf-8"))
+            line = message.get("line") if isinstance(message, dict) else None
+            if not isinstance(line, str):
+                raise BadRequest('a command is a JSON object {"line": "COMMAND ..."}')
+            if len(line.encode()) > MAX_COMMAND_BYTES:
+                raise BadRequest(f"line of {len(line.encode())} bytes: at most {MAX_COMMAND_BYTES}",
+                                 reason="line-too-long")
+            parsed = parse_line(line)
+        except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+            return _command_reply(BadRequest(f"body is not JSON: {exc}"))
+        except RvsError as exc:
+            return _command_reply(exc)
+        session = Session(name=f"web {request.remote}", authenticated=True)  # allowed() passed
+        self.server.dispatcher.submit(Request(command=parsed.command, tokens=parsed.tokens, tag="web",
+                                              line=parsed.text), session, _ReplyFuture(future))
+        try:
+            return _command_reply(await future)   # a job's reply comes at its end; the job never waits on us
+        except RvsError as exc:
+            return _command_reply(exc)
+
+    async def _login(self, request: web.Request) -> web.Response:
+        """The sign-in form's POST: the right token sets the cookie and goes to the page."""
+        token = self.server.token
+        if token is None:
+            return web.Response(status=303, headers={"Location": "/"})
+        if not same_origin(request):
+            return _error(403, "cross-origin", "sign in from this server's own page")
+        form = await request.post()
+        given = form.get("token")
+        if not isinstance(given, str) or not token_matches(given.strip(), token):
+            await asyncio.sleep(LOGIN_FAILED_PAUSE_S)
+            return _login_page(401, "That is not this server's token.")
+        response = web.Response(status=303, headers={"Location": "/", "Cache-Control": "no-store"})
+        login_cookie(response, token)
+        return response
 
     async def _products(self, request: web.Request) -> web.Response:
         text = request.query.get("limit", str(DEFAULT_LIMIT))
@@ -203,6 +265,24 @@ class WebView:
         finally:
             self.hub.discard(client)
         return response
+
+
+def _command_reply(result: Mapping[str, Any] | RvsError) -> web.Response:
+    """The final reply as the text port would write it, and its parts."""
+    if isinstance(result, RvsError):
+        body = {"reply": format_error("web", result), "ok": False, "code": result.code, "reason": result.reason,
+                "message": result.message}
+    else:
+        body = {"reply": format_ok("web", result), "ok": True, "code": 200, "data": dict(result)}
+    return web.json_response(body, dumps=_dumps, headers={"Cache-Control": "no-store"})
+
+
+def _login_page(status: int, message: str) -> web.Response:
+    page = (STATIC / "login.html").read_text()
+    if message:
+        page = page.replace("<!--message-->", f'<p class="error">{html.escape(message)}</p>')
+    return web.Response(text=page, status=status, content_type="text/html",
+                        headers={"Cache-Control": "no-store", "WWW-Authenticate": "Bearer"})
 
 
 def _dumps(value: Any) -> str:

@@ -76,10 +76,10 @@ def main(argv: list[str] | None = None) -> int:
         tiny.stop()
         server, idle_memory = idle(Path(tmp) / "default", args.world_config.read_text())
         try:
-            print(f"idle server, default world: RSS {idle_memory['VmRSS']:.0f} MiB (anonymous "
-                  f"{idle_memory['RssAnon']:.0f}, file {idle_memory['RssFile']:.0f}); on a 2 m world "
-                  f"{tiny_memory['VmRSS']:.0f} MiB: the world holds {idle_memory['VmRSS'] - tiny_memory['VmRSS']:.0f} MiB; "
-                  f"ratio {idle_memory['VmRSS'] / tiny_memory['VmRSS']:.2f}; goal under 400 MiB")
+            rss, tiny_rss = idle_memory["VmRSS"], tiny_memory["VmRSS"]
+            print(f"idle server, default world: RSS {rss:.0f} MiB (anonymous {idle_memory['RssAnon']:.0f}, file "
+                  f"{idle_memory['RssFile']:.0f}); on a 2 m world {tiny_rss:.0f} MiB: the world holds "
+                  f"{rss - tiny_rss:.0f} MiB; ratio {rss / tiny_rss:.2f}; goal under 400 MiB")
             if not args.no_dem:
                 begun = time.perf_counter()
                 with server.connect(timeout=60) as client:

@@ -103,3 +103,38 @@ def test_page_shows_a_text_port_job_live(server_factory, tmp_path, browser):
 
     page.screenshot(path=SCREENSHOT, full_page=True)
     watched.assert_only_the_server(server.web)
+
+
+def test_an_operator_signs_in_and_commands_from_the_page(server_factory, tmp_path, browser):
+    """The sign-in form sets the cookie (no token in any URL after it), and the command box drives the
+    PTU through the dispatcher: the reply is shown, the progress bar reaches 100 %, a bad line gets its
+    ERR and moves nothing."""
+    server = start_with_token(server_factory, tmp_path)
+    page = browser.new_page(viewport={"width": 1400, "height": 950})
+    watched = Watched(page)
+    page.goto(f"http://{server.web}/")
+    page.fill("input[name=token]", "not-the-token")
+    page.click("button[type=submit]")
+    sync_api.expect(page.locator("p.error")).to_contain_text("not this server's token")
+    page.fill("input[name=token]", TOKEN)
+    page.click("button[type=submit]")
+    page.wait_for_selector("#link.up", timeout=15000)
+    page.wait_for_selector("#devices td.h-ok", timeout=15000)
+
+    page.fill("#command-line", "move-ptu --pan -15 --tilt 5")
+    page.press("#command-line", "Enter")
+    sync_api.expect(page.locator("#command-replies li.ok")).to_contain_text("OK job=", timeout=60000)
+    sync_api.expect(page.locator("#bar-text")).to_have_text("100 %", timeout=15000)
+    sync_api.expect(page.locator("#pan")).to_have_text(re.compile(r"^-1[45]\.\d\d$"), timeout=15000)
+    page.fill("#command-line", "move-ptu --pan 500")
+    page.press("#command-line", "Enter")
+    sync_api.expect(page.locator("#command-replies li.err")).to_contain_text("ERR 400", timeout=15000)
+    page.press("#command-line", "ArrowUp")                 # the history, as in a shell
+    assert page.input_value("#command-line") == "move-ptu --pan 500"
+    page.screenshot(path=str(tmp_path / "webview-command.png"), full_page=True)
+
+    urls = [u for u in watched.requests if not u.startswith("data:")]
+    assert not any("token=" in u for u in urls), urls      # the cookie carried it
+    assert all(urlsplit(u).netloc == server.web for u in urls), urls
+    assert [r for r in watched.refused if "/login" not in r and not r.endswith(f"{server.web}/")] == []
+    assert not watched.errors, watched.errors

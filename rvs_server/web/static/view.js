@@ -597,6 +597,50 @@
     };
   }
 
+  // ------------------------------------------------------------------------------ command box
+  // The line goes through the server's one dispatcher (POST /api/command), as a text client's would;
+  // its reply is shown when it comes (a job's, at its end), its progress meanwhile in the bar above.
+  const COMMAND_REPLIES = 50, HISTORY = 100;
+  const history = [];
+  let historyAt = 0;
+  function showReply(text, cls) {
+    const list = $("command-replies");
+    const item = el("li", cls, text);
+    list.append(item);
+    while (list.children.length > COMMAND_REPLIES) list.firstChild.remove();
+    list.scrollTop = list.scrollHeight;
+    return item;
+  }
+  function sendCommand(line) {
+    showReply("> " + line, "sent");
+    return fetch(url("/api/command"), {
+      method: "POST", cache: "no-store", credentials: "same-origin",
+      headers: { "Content-Type": "application/json" }, body: JSON.stringify({ line: line }),
+    }).then(function (r) {
+      return r.json().then(function (body) {
+        if (body.reply) { showReply(body.reply, body.ok ? "ok" : "err"); return body; }
+        showReply("HTTP " + r.status + " " + (body.message || body.error || ""), "err");
+        return body;
+      });
+    }).catch(function (err) { showReply("no reply: " + (err.message || err), "err"); })
+      .finally(function () { refreshStatusSoon(); refreshProductsSoon(); });
+  }
+  $("command-form").addEventListener("submit", function (ev) {
+    ev.preventDefault();
+    const input = $("command-line"), line = input.value.trim();
+    if (!line) return;
+    if (history[history.length - 1] !== line) pushCapped(history, line, HISTORY);
+    historyAt = history.length;
+    input.value = "";
+    sendCommand(line);
+  });
+  $("command-line").addEventListener("keydown", function (ev) {  // up and down walk the history, as in a shell
+    if (ev.key !== "ArrowUp" && ev.key !== "ArrowDown") return;
+    ev.preventDefault();
+    historyAt = Math.max(0, Math.min(history.length, historyAt + (ev.key === "ArrowUp" ? -1 : 1)));
+    this.value = history[historyAt] || "";
+  });
+
   TOPICS.forEach(ensureTopic);
   window.addEventListener("resize", function () { redraw("map"); });
   refreshStatus();
