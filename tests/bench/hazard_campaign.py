@@ -1,9 +1,16 @@
 """Campaign: the hazard guard against obstacles no map knew, on seeded scenes, scored on the truth.
 
-    python tests/bench/hazard_campaign.py [--seeds 21 22 23 24 25] [--encounters 10]
+    python tests/bench/hazard_campaign.py [--sensor tof|stereo] [--cover 0.07] [--seeds 21 22 23 24 25]
+        [--encounters 8] [--routes 2] [--results tests/bench/results/hazard.jsonl]
+    python tests/bench/hazard_campaign.py --report tests/bench/results/hazard.jsonl
 
-Per scene (a 20 m seeded world, one real rvs-server at sim-speed 50, `hazard-start` running all
-along, the rover at its routes.toml speed, 0.3 m/s):
+Each finished scene is appended to --results at once (clients/run_log.py: seed, sensor, settings,
+every encounter and score, seconds); a rerun with the same settings skips the scenes already there,
+so a campaign the clock stops is continued by running it again. --report prints the summary per
+settings and sensor from the file alone.
+
+Per scene (a 20 m seeded world with --cover rock cover, one real rvs-server at sim-speed 50,
+`hazard-start --sensor SENSOR` running all along, the rover at its routes.toml speed, 0.3 m/s):
 - clean runs: the rover turns onto a lane that the truth says is clear (no rock over 8 cm within
   0.5 m of its centre line, i.e. the swept footprint and 0.15 m more each side) and drives it;
   any stop there is a false stop;
@@ -34,6 +41,7 @@ REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO / "tests"))
 sys.path.insert(0, str(REPO))
 
+from clients.run_log import RunLog, report  # noqa: E402
 from drivers.sim.config import WorldConfig  # noqa: E402
 from drivers.sim.world import World  # noqa: E402
 
@@ -42,16 +50,17 @@ from conftest import ServerProcess, pairs, write_configs  # noqa: E402
 LANE_HALF_WIDTH = 0.50      # 0.25 half body + 0.10 guard margin + 0.15 for drive error
 CLEAR_BELOW = 0.08          # a lane is clean when no rock on it is taller than this
 CLEAN_RUN_M = 4.0           # each clean run
+RESULTS = REPO / "tests" / "bench" / "results" / "hazard.jsonl"
 
 
-def world_toml(seed: int) -> str:
-    return f"seed = {seed}\nsize_m = [20.0, 20.0]\n[rocks]\ncover = 0.07\n[craters]\ncount = 1\n"
+def world_toml(seed: int, cover: float) -> str:
+    return f"seed = {seed}\nsize_m = [20.0, 20.0]\n[rocks]\ncover = {cover:g}\n[craters]\ncount = 1\n"
 
 
 class Scene:
-    def __init__(self, seed: int, workdir: Path):
+    def __init__(self, seed: int, workdir: Path, cover: float):
         self.seed = seed
-        text = world_toml(seed)
+        text = world_toml(seed, cover)
         self.world = World.build(WorldConfig(**tomllib.loads(text)))
         config = write_configs(workdir / "configs", {"world.toml": text})
         self.server = ServerProcess(workdir / "data", config).start(timeout=180)
@@ -137,10 +146,11 @@ def _wrap(angle: float) -> float:
     return (angle + math.pi) % (2 * math.pi) - math.pi
 
 
-def run_scene(scene: Scene, encounters: int, routes: int, log: list[dict]) -> dict:
+def run_scene(scene: Scene, sensor: str, encounters: int, routes: int, log: list[dict]) -> dict:
     clean_m, false_stops, done = 0.0, 0, 0
     stops = 0   # guard stops so far: the row of stops.csv each encounter's stop will be
-    assert " OK " in scene.command("hazard-start")
+    started = scene.command(f"hazard-start --sensor {sensor}")
+    assert " OK " in started, started
     contacts0 = scene.contacts()
     attempts = 0
     while done < encounters and attempts < encounters * 4:
@@ -211,7 +221,8 @@ def run_scene(scene: Scene, encounters: int, routes: int, log: list[dict]) -> di
         if entry["seed"] == scene.seed and entry["stopped"] and entry["stop_row"] < len(rows):
             value = rows[entry["stop_row"]]["true_clearance_m"]
             entry["clearance"] = None if value == "none" else float(value)
-    return {"clean_m": clean_m, "false_stops": false_stops, "summary": pairs(reply),
+    summary = json.loads((Path(pairs(reply)["path"]) / "product.json").read_text()).get("summary")
+    return {"clean_m": clean_m, "false_stops": false_stops, "stop_reply": pairs(reply), "summary": summary,
             "contacts": scene.contacts() - contacts0}
 
 
@@ -224,52 +235,83 @@ def back_off(scene: Scene) -> int:
     return int("drive stopped: hazard" in reply)
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser()
-    parser.add_argument("--seeds", type=int, nargs="+", default=[21, 22, 23, 24, 25])
-    parser.add_argument("--encounters", type=int, default=8, help="blind-drive encounters per scene")
-    parser.add_argument("--routes", type=int, default=2, help="taught-route encounters per scene")
-    parser.add_argument("--keep", help="keep each scene's data directory under this directory")
-    args = parser.parse_args()
-    started = time.monotonic()
-    log: list[dict] = []
-    clean_m, false_stops, contacts = 0.0, 0, 0
-    for seed in args.seeds:
-        with tempfile.TemporaryDirectory(prefix=f"hazard-campaign-{seed}-", dir=args.keep) as tmp:
-            if args.keep:   # keep the products to look at: TemporaryDirectory's own clean-up is skipped
-                tmp = tempfile.mkdtemp(prefix=f"hazard-campaign-{seed}-", dir=args.keep)
-            scene = Scene(seed, Path(tmp))
-            try:
-                result = run_scene(scene, args.encounters, args.routes, log)
-            finally:
-                scene.close()
-        clean_m += result["clean_m"]
-        false_stops += result["false_stops"]
-        contacts += result["contacts"]
-        print(f"seed {seed}: {result['summary']}", flush=True)
-    encounters = len(log)
+def summarise(records: list[dict], sensor: str) -> str:
+    """The campaign's figures over scenes (each a results line with its encounters)."""
+    scenes = [r for r in records if r["sensor"] == sensor]
+    log = [e for r in scenes for e in r["encounters"]]
+    clean_m = sum(r["clean_m"] for r in scenes)
+    false_stops = sum(r["false_stops"] for r in scenes)
     # Stopped for the dropped obstacle: stopped, no contact, and the nearest true obstacle ahead is within 1 m.
     short = [e for e in log if e["stopped"] and e["contacts"] == 0 and e.get("clearance") is not None
              and e["clearance"] < 1.0]
     touched = sum(e["contacts"] > 0 for e in log)
+    rates = [float(r["stop_reply"]["rate"]) for r in scenes]
+    p95 = [((r.get("summary") or {}).get("latency_ms") or {}).get("p95") for r in scenes]
+    p95 = [v for v in p95 if v is not None]
+    lines = [f"{sensor}: scenes {len(scenes)} (seeds {' '.join(str(r['seed']) for r in scenes)}), 20 m worlds, "
+             f"rover 0.3 m/s",
+             f"  encounters {len(log)} (drive {sum(e['how'] == 'drive' for e in log)}, route-follow "
+             f"{sum(e['how'] == 'route-follow' for e in log)}; rocks {sum(e['kind'] == 'rock' for e in log)} of "
+             f"12-30 cm, persons {sum(e['kind'] == 'person' for e in log)})",
+             f"  stopped short of the obstacle before contact: {len(short)}/{len(log)}; encounters with a contact: "
+             f"{touched}; contacts over the campaign (truth): {sum(r['contacts'] for r in scenes)}",
+             f"  clean runs: {clean_m:.1f} m, false stops {false_stops} -> "
+             f"{100.0 * false_stops / max(clean_m, 1e-9):.2f} per 100 m"]
+    if rates:
+        lines.append(f"  detection rate (simulated s) min {min(rates):.2f} median {np.median(rates):.2f} Hz; "
+                     f"latency p95 per scene median {np.median(p95) if p95 else math.nan:.1f} ms, "
+                     f"max {max(p95) if p95 else math.nan:.1f} ms")
     margins = [e["clearance"] for e in short]
-    print("\n== hazard guard campaign ==")
-    print(f"scenes {len(args.seeds)} (seeds {' '.join(map(str, args.seeds))}), 20 m worlds, rover 0.3 m/s, "
-          f"stop distance 0.5 m, TOF at 5 Hz")
-    print(f"encounters {encounters} (drive {sum(e['how'] == 'drive' for e in log)}, route-follow "
-          f"{sum(e['how'] == 'route-follow' for e in log)}; rocks {sum(e['kind'] == 'rock' for e in log)} of "
-          f"12-30 cm, persons {sum(e['kind'] == 'person' for e in log)})")
-    print(f"stopped short of the obstacle before contact: {len(short)}/{encounters}; encounters with a contact: "
-          f"{touched}; other outcomes: "
-          f"{[(e['seed'], e['kind'], e['reply'][-90:], e.get('clearance')) for e in log if e not in short]}")
-    print(f"contacts over the campaign (truth): {contacts}")
     if margins:
         m = np.array(margins)
-        print(f"stop margin (true free way left, m): min {m.min():.3f} p5 {np.percentile(m, 5):.3f} "
-              f"median {np.median(m):.3f} max {m.max():.3f} over {len(m)} stops")
-    print(f"clean runs: {clean_m:.1f} m, false stops {false_stops} -> "
-          f"{100.0 * false_stops / max(clean_m, 1e-9):.2f} per 100 m")
-    print(f"wall time {time.monotonic() - started:.0f} s")
+        lines.append(f"  stop margin (true free way left, m): min {m.min():.3f} p5 {np.percentile(m, 5):.3f} "
+                     f"median {np.median(m):.3f} max {m.max():.3f} over {len(m)} stops")
+    others = [(e["seed"], e["kind"], e["reply"][-90:], e.get("clearance")) for e in log if e not in short]
+    if others:
+        lines.append(f"  other outcomes: {others}")
+    return "\n".join(lines)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--sensor", choices=("tof", "stereo"), default="tof")
+    parser.add_argument("--cover", type=float, default=0.07, help="the worlds' rock cover")
+    parser.add_argument("--seeds", type=int, nargs="+", default=[21, 22, 23, 24, 25])
+    parser.add_argument("--encounters", type=int, default=8, help="blind-drive encounters per scene")
+    parser.add_argument("--routes", type=int, default=2, help="taught-route encounters per scene")
+    parser.add_argument("--results", type=Path, default=RESULTS, help="the JSON-lines file scenes are kept in")
+    parser.add_argument("--report", type=Path, help="print the summary of this results file and exit")
+    parser.add_argument("--keep", help="keep each scene's data directory under this directory")
+    args = parser.parse_args()
+    if args.report:
+        print(report(args.report, summarise))
+        return
+    log = RunLog(args.results, {"encounters": args.encounters, "routes": args.routes, "cover": args.cover})
+    planned = [{"seed": seed, "sensor": args.sensor} for seed in args.seeds]
+    tasks = log.todo(planned)
+    print(f"{len(planned) - len(tasks)} of {len(planned)} scenes already in {args.results}; {len(tasks)} to go",
+          flush=True)
+    for task in tasks:
+        started = time.monotonic()
+        encounters: list[dict] = []
+        try:
+            with tempfile.TemporaryDirectory(prefix=f"hazard-campaign-{task['seed']}-", dir=args.keep) as tmp:
+                if args.keep:   # keep the products to look at: TemporaryDirectory's own clean-up is skipped
+                    tmp = tempfile.mkdtemp(prefix=f"hazard-campaign-{task['seed']}-", dir=args.keep)
+                scene = Scene(task["seed"], Path(tmp), args.cover)
+                try:
+                    result = run_scene(scene, args.sensor, args.encounters, args.routes, encounters)
+                finally:
+                    scene.close()
+        except Exception as exc:   # one broken scene is written and reported, not the campaign's end
+            log.append(task, time.monotonic() - started, error=f"{type(exc).__name__}: {exc}")
+            print(f"{args.sensor} seed {task['seed']}: broke: {exc}", flush=True)
+            continue
+        for entry in encounters:
+            entry["reply"] = entry["reply"][-300:]
+        log.append(task, time.monotonic() - started, encounters=encounters, **result)
+        print(f"{args.sensor} seed {task['seed']}: {result['stop_reply']}", flush=True)
+    print(report(args.results, summarise))
 
 
 if __name__ == "__main__":
