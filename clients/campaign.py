@@ -32,8 +32,22 @@ A measurement campaign adds Python where a table is not enough (tests/bench/camp
     scenes = 10                                     #   (world.toml options over [world]) and `configs`
                                                     #   ({"navigation.toml": {...}})
     score = "../navigation_scoring.py:score"        # FUNCTION(run, data_dir) -> more columns, computed
-                                                    #   in the worker after the mission
+                                                    #   in the worker after the mission (a `pid`
+                                                    #   parameter, if it has one, gets the server's)
     report = "../navigation_scoring.py:report"      # FUNCTION(records) -> the text of DIR/report.md
+
+A run that is not one fixed mission on one server (a hop launched where the last hop-plan chose, a
+route taught on one server and repeated on fresh ones) is played by Python instead of a mission
+(tests/bench/campaigns/hopping.toml):
+
+    execute = "../hopping_scoring.py:execute"       # FUNCTION(run, run_dir, sim_speed) -> the run's values
+                                                    #   (a dict, JSON-serialisable); raising fails the attempt
+
+An `execute` campaign has no `mission`, [world], [collect] or `score`: the function starts what servers
+it needs under run_dir (OUT/runs/RUN/, the attempt's marker file already in it: attempt N is the Nth
+`attempt-*` file) and its prints go to run_dir/execute-N.log. Everything else is the same: runs from
+[[run]], [product] and runs_from, one Dask task per run with the resource servers=1, the retry, the
+results file and resuming, the progress, the summary and the report hook.
 
 A hook is FILE.py:FUNCTION (relative to the campaign file; workers on other machines need the same
 path) or MODULE:FUNCTION (importable where the campaign runs).
@@ -56,16 +70,18 @@ never dropped.
 Results are appended (fsynced) to OUT/results.jsonl with clients/run_log.RunLog as they arrive, and
 OUT/summary.csv, summary.json and summary.md are rewritten after each one, so running the same
 command again resumes the campaign: runs that finished are not run again, failed ones are retried.
-Changing the mission, the world table, sim_speed or the collect table makes a new campaign
-(`settings` carry a digest of them); the old lines stay in the file.
+Changing the mission, the world table, sim_speed, the collect table or the score or execute hook's
+name makes a new campaign (`settings` carry a digest of them); the old lines stay in the file.
 """
 from __future__ import annotations
 
 import argparse
+import contextlib
 import csv
 import hashlib
 import importlib
 import importlib.util
+import inspect
 import io
 import itertools
 import json
@@ -78,6 +94,7 @@ import subprocess
 import sys
 import time
 import tomllib
+import traceback
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -120,15 +137,17 @@ class Campaign:
     collect: dict[str, str]
     sim_speed: float = 1.0
     timeout_s: float = 600.0
-    score: str = ""       # MODULE:FUNCTION(run, data_dir) -> columns, after the mission
+    score: str = ""       # MODULE:FUNCTION(run, data_dir[, pid]) -> columns, after the mission
     report: str = ""      # MODULE:FUNCTION(records) -> the campaign's own summary text
+    execute: str = ""     # MODULE:FUNCTION(run, run_dir, sim_speed) -> values, instead of server and mission
 
     @property
     def settings(self) -> dict[str, Any]:
         """What makes two runs of the same name comparable (RunLog's `settings`)."""
         # The score hook by its file's name and function: the same campaign checked out elsewhere resumes.
         basis = [self.mission_text, self.world, self.collect, self.sim_speed] + \
-            ([self.score.rsplit("/", 1)[-1]] if self.score else [])
+            ([self.score.rsplit("/", 1)[-1]] if self.score else []) + \
+            ([{"execute": self.execute.rsplit("/", 1)[-1]}] if self.execute else [])
         digest = hashlib.sha256(json.dumps(basis, sort_keys=True).encode()).hexdigest()[:16]
         return {"campaign": self.name, "digest": digest}
 
@@ -157,17 +176,29 @@ def load_campaign(path: str | Path) -> Campaign:
     except tomllib.TOMLDecodeError as exc:
         raise CampaignError(f"{path}: {exc}") from None
     known = {"name", "mission", "sim_speed", "timeout_s", "world", "run", "product", "collect", "runs_from",
-             "runs_args", "score", "report"}
+             "runs_args", "score", "report", "execute"}
     unknown = sorted(set(data) - known)
     if unknown:
         raise CampaignError(f"{path.name}: unknown keys {', '.join(unknown)} (known: {', '.join(sorted(known))})")
-    if "mission" not in data:
-        raise CampaignError(f"{path.name}: no `mission` file")
-    mission_path = (path.parent / data["mission"]).resolve()
-    try:
-        mission_text = mission_path.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise CampaignError(f"cannot read mission {mission_path}: {exc.strerror}") from None
+    for key in ("runs_from", "score", "report", "execute"):
+        if key in data and not isinstance(data[key], str):
+            raise CampaignError(f"{path.name}: {key} = {data[key]!r}: expected a string FILE.py:FUNCTION or "
+                                f"MODULE:FUNCTION")
+    if "execute" in data:
+        clash = [key for key in ("mission", "world", "collect", "score") if key in data]
+        if clash:
+            raise CampaignError(f"{path.name}: execute = {data['execute']!r} plays each run itself: "
+                                f"{', '.join(clash)} cannot be given with it")
+        mission_name = mission_text = ""
+    elif "mission" not in data:
+        raise CampaignError(f"{path.name}: no `mission` file (or `execute` hook)")
+    else:
+        mission_path = (path.parent / data["mission"]).resolve()
+        mission_name = mission_path.name
+        try:
+            mission_text = mission_path.read_text(encoding="utf-8")
+        except OSError as exc:
+            raise CampaignError(f"cannot read mission {mission_path}: {exc.strerror}") from None
     runs = [dict(run) for run in data.get("run", [])]
     product = data.get("product", {})
     if product:
@@ -175,7 +206,7 @@ def load_campaign(path: str | Path) -> Campaign:
             raise CampaignError(f"{path.name}: every key of [product] must be a non-empty list")
         names = list(product)
         runs += [dict(zip(names, combination, strict=True)) for combination in itertools.product(*product.values())]
-    for key in ("runs_from", "score", "report"):
+    for key in ("runs_from", "score", "report", "execute"):
         if key in data:
             data[key] = _resolved(str(data[key]), path.parent)
     if "runs_from" in data:
@@ -186,22 +217,38 @@ def load_campaign(path: str | Path) -> Campaign:
     for key in ("score", "report"):
         if key in data:
             hook(str(data[key]), f"{path.name} {key}")     # refused now, not in every worker
+    if "execute" in data:
+        played = hook(str(data["execute"]), f"{path.name} execute")
+        try:
+            inspect.signature(played).bind(run={}, run_dir=path.parent, sim_speed=1.0)
+        except TypeError:
+            raise CampaignError(f"{path.name} execute: {data['execute']!r} must take (run, run_dir, sim_speed)") \
+                from None
+        except ValueError:   # no signature to read (a builtin): it is called as it is
+            pass
     if not runs:
         raise CampaignError(f"{path.name}: no runs ([[run]] tables, a [product] of lists, or runs_from)")
     keys = [RunLog.key(run) for run in runs]
     if len(set(keys)) != len(keys):
         raise CampaignError(f"{path.name}: the same run is named twice")
     collect = {str(column): str(spec) for column, spec in data.get("collect", {}).items()}
-    campaign = Campaign(name=str(data.get("name", path.stem)), path=path, mission_name=mission_path.name,
+    campaign = Campaign(name=str(data.get("name", path.stem)), path=path, mission_name=mission_name,
                         mission_text=mission_text, world=dict(data.get("world", {})), runs=runs, collect=collect,
                         sim_speed=float(data.get("sim_speed", 1.0)), timeout_s=float(data.get("timeout_s", 600.0)),
-                        score=str(data.get("score", "")), report=str(data.get("report", "")))
+                        score=str(data.get("score", "")), report=str(data.get("report", "")),
+                        execute=str(data.get("execute", "")))
     problems = []
     for run in runs:   # every run's mission must parse before anything starts
-        try:
-            mission.parse_mission(mission_text, variables_of(run, run_name(run), 1))
-        except mission.MissionError as exc:
-            problems += [f"run {run_name(run)}: {problem}" for problem in exc.problems]
+        if campaign.execute:
+            try:
+                json.dumps(run)
+            except (TypeError, ValueError) as exc:
+                problems.append(f"run {run_name(run)}: not JSON ({exc})")
+        else:
+            try:
+                mission.parse_mission(mission_text, variables_of(run, run_name(run), 1))
+            except mission.MissionError as exc:
+                problems += [f"run {run_name(run)}: {problem}" for problem in exc.problems]
         if "world_file" in run:
             run["world_file"] = str((path.parent / run["world_file"]).resolve())
     for column, spec in collect.items():
@@ -275,7 +322,12 @@ def _resolved(spec: str, folder: Path) -> str:
 # One run (what a Dask task does, on whichever worker gets it)
 
 
+def _toml_key(key: str) -> str:
+    return key if re.fullmatch(r"[A-Za-z0-9_-]+", key) else json.dumps(key)
+
+
 def _toml_value(value: Any) -> str:
+    """A value as TOML writes it inline: a dict (in a list, or nested) as an inline table."""
     if isinstance(value, bool):
         return "true" if value else "false"
     if isinstance(value, (int, float)):
@@ -284,15 +336,19 @@ def _toml_value(value: Any) -> str:
         return json.dumps(value)
     if isinstance(value, list):
         return "[" + ", ".join(_toml_value(item) for item in value) + "]"
-    raise CampaignError(f"cannot write {value!r} to world.toml")
+    if isinstance(value, dict):
+        return "{ " + ", ".join(f"{_toml_key(str(key))} = {_toml_value(item)}" for key, item in value.items()) + " }" \
+            if value else "{}"
+    raise CampaignError(f"cannot write {value!r} to a configuration file")
 
 
 def dump_toml(data: dict[str, Any], prefix: str = "") -> str:
-    """The small TOML the world file needs: scalars, lists and nested tables."""
-    lines = [f"{key} = {_toml_value(value)}" for key, value in data.items() if not isinstance(value, dict)]
+    """The small TOML the configuration files need: scalars, lists (of inline tables too) and nested tables."""
+    lines = [f"{_toml_key(key)} = {_toml_value(value)}" for key, value in data.items() if not isinstance(value, dict)]
     for key, value in data.items():
         if isinstance(value, dict):
-            lines += ["", f"[{prefix}{key}]", dump_toml(value, f"{prefix}{key}.")]
+            name = f"{prefix}{_toml_key(key)}"
+            lines += ["", f"[{name}]", dump_toml(value, f"{name}.")]
     return "\n".join(lines)
 
 
@@ -452,6 +508,8 @@ def execute_run(spec: dict[str, Any]) -> dict[str, Any]:
     """One attempt of one run: start its server, play the mission, collect, quit. Raises RunFailed
     (so that Dask retries it) when anything of it failed; returns the run's result otherwise."""
     started = time.monotonic()
+    if spec.get("execute"):
+        return _played(spec, started)
     run, name = spec["run"], spec["name"]
     run_dir = Path(spec["run_dir"])
     attempt = next_attempt(run_dir)
@@ -469,7 +527,9 @@ def execute_run(spec: dict[str, Any]) -> dict[str, Any]:
             raise RunFailed(f"attempt {attempt}: {outcome}")
         values = collect_values(spec["collect"], recorder.replies)
         if spec.get("score"):
-            values.update(hook(spec["score"], "score")(run=run, data_dir=server.data_dir))
+            scorer = hook(spec["score"], "score")
+            extra = {"pid": server.proc.pid} if _takes(scorer, "pid") else {}   # while the server still runs
+            values.update(scorer(run=run, data_dir=server.data_dir, **extra))
     except RvsClientError as exc:
         raise RunFailed(f"attempt {attempt}: {exc}") from None
     finally:
@@ -479,6 +539,36 @@ def execute_run(spec: dict[str, Any]) -> dict[str, Any]:
             client.close()
     return {"run": run, "seconds": time.monotonic() - started, "attempt": attempt, "host": socket.gethostname(),
             "values": values}
+
+
+def _played(spec: dict[str, Any], started: float) -> dict[str, Any]:
+    """One attempt of a run of an `execute` campaign: the hook plays it (its prints to execute-N.log)."""
+    run, run_dir = spec["run"], Path(spec["run_dir"])
+    attempt = next_attempt(run_dir)
+    with open(run_dir / f"execute-{attempt}.log", "w", encoding="utf-8") as transcript:
+        try:
+            with contextlib.redirect_stdout(transcript):
+                values = hook(spec["execute"], "execute")(run=run, run_dir=run_dir, sim_speed=spec["sim_speed"])
+        except Exception as exc:
+            transcript.write(traceback.format_exc())
+            raise RunFailed(f"attempt {attempt}: {type(exc).__name__}: {exc}"[:2000]) from None
+        if not isinstance(values, dict):
+            raise RunFailed(f"attempt {attempt}: execute gave {type(values).__name__}, not a dict of values")
+        try:
+            json.dumps(values)
+        except (TypeError, ValueError) as exc:
+            raise RunFailed(f"attempt {attempt}: execute's values cannot be written as JSON: {exc}") from None
+    return {"run": run, "seconds": time.monotonic() - started, "attempt": attempt, "host": socket.gethostname(),
+            "values": values}
+
+
+def _takes(function: Callable[..., Any], name: str) -> bool:
+    """Whether a hook takes the keyword `name` (hooks written before it was offered do not)."""
+    try:
+        parameters = inspect.signature(function).parameters.values()
+    except (TypeError, ValueError):
+        return False
+    return any(p.name == name or p.kind is inspect.Parameter.VAR_KEYWORD for p in parameters)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -520,8 +610,9 @@ def write_summary(campaign: Campaign, log: RunLog, out: Path) -> None:
     write_atomic(out / "summary.json", json.dumps({"campaign": campaign.name, "settings": campaign.settings,
                                                        "runs": rows}, indent=2) + "\n")
 
-    def cell(value: Any) -> str:
-        return "" if value is None else str(value).replace("|", "\\|").replace("\n", " ")
+    def cell(value: Any) -> str:   # a long value (an execute hook's records) in full in the csv and json
+        text = "" if value is None else str(value).replace("|", "\\|").replace("\n", " ")
+        return text if len(text) <= 120 else text[:117] + "..."
 
     table = [f"# Campaign {campaign.name}", "",
              "| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
@@ -625,7 +716,8 @@ def run_campaign(campaign: Campaign, out: Path, workers: int | None = None, sche
             spec = {"run": run, "name": name, "run_dir": str(out / "runs" / name),
                     "mission_text": campaign.mission_text,
                     "mission_name": campaign.mission_name, "world": campaign.world, "collect": campaign.collect,
-                    "sim_speed": campaign.sim_speed, "timeout_s": campaign.timeout_s, "score": campaign.score}
+                    "sim_speed": campaign.sim_speed, "timeout_s": campaign.timeout_s, "score": campaign.score,
+                    "execute": campaign.execute}
             future = client.submit(execute_run, spec, key=f"rvs-run-{name}-{time.time_ns()}", pure=False,
                                    resources={"servers": 1}, retries=1)
             futures[future] = (run, time.monotonic())
