@@ -68,22 +68,6 @@ def peak_rss_mib(pid: int) -> float:
     return float("nan")
 
 
-def server_peak_rss_mib(data_dir: Path) -> float:
-    """The peak memory of the running rvs-server whose --data-dir is data_dir (the campaign's score hook
-    runs on the server's machine while the server still runs, but is not given its process)."""
-    wanted = str(data_dir).encode()
-    for entry in Path("/proc").iterdir():
-        if not entry.name.isdigit():
-            continue
-        try:
-            words = (entry / "cmdline").read_bytes().split(b"\0")
-            if b"rvs_server" in words and wanted in words:
-                return peak_rss_mib(int(entry.name))
-        except OSError:
-            continue
-    return float("nan")
-
-
 def seed_line(seed: int, sensor: str, result: dict[str, Any]) -> str:
     return (f"seed {seed} {sensor:6s} rmse {result['rmse'] * 100:5.2f} cm  "
             f"p95 {result['p95'] * 100:5.2f} cm  "
@@ -112,15 +96,16 @@ def runs(seeds: list[int] | None = None) -> list[dict[str, Any]]:
     return [{"seed": int(seed)} for seed in (seeds if seeds is not None else [1, 2, 3, 4, 5])]
 
 
-def score(run: dict[str, Any], data_dir: Path) -> dict[str, Any]:
-    """Both panoramas' scores (tof_rmse, stereo_rmse, ...), dem-full-tof's timings and the peak memory;
-    the products are the mission's `--output tof` and `--output stereo`."""
+def score(run: dict[str, Any], data_dir: Path, pid: int | None = None) -> dict[str, Any]:
+    """Both panoramas' scores (tof_rmse, stereo_rmse, ...), dem-full-tof's timings and the peak memory of
+    the server (`pid`: the engine hands it over while the server still runs; nan without it); the
+    products are the mission's `--output tof` and `--output stereo`."""
     products = Path(data_dir, "products")
     values: dict[str, Any] = {}
     for sensor in SENSORS:
         values.update({f"{sensor}_{key}": value for key, value in score_product(products / sensor, sensor).items()})
     values["tof_timings_s"] = timings(products / "tof")
-    values["peak_memory_mib"] = server_peak_rss_mib(Path(data_dir))
+    values["peak_memory_mib"] = peak_rss_mib(pid) if pid is not None else float("nan")
     return values
 
 
