@@ -7,19 +7,25 @@ chains   per hop: the estimated touchdown's error with and without ICP as a perc
 singles  the hop's reconstructed displacement against the true one, as a percentage of its length;
 timing   hop-plan's steps for hops of 40-60 frames and the servers' peak memory.
 
-Used by tests/bench/measure_hopping.py (its runs, then `summary`), and by a campaign file through the
-hooks `runs` and `report` below. A hopping run is not a fixed mission: each chain hop is launched as
-the previous hop-plan chose, and each single hop heads from where the last one came to rest, so the
-campaign engine needs a hook that plays a run itself (see the issue 28 notes) before
-tests/bench/campaigns/hopping.toml can exist.
+A hopping run is not a fixed mission: each chain hop is launched as the previous hop-plan chose, and
+each single hop heads from where the last one came to rest. chain() and singles() play one run on a
+server of its own; tests/bench/measure_hopping.py runs them in a process pool (then `summary`), and
+tests/bench/campaigns/hopping.toml on Dask through the hooks `runs`, `execute` and `report` below.
 """
 from __future__ import annotations
 
+import json
 import math
+import re
+import shutil
+import sys
+import time
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+REPO = Path(__file__).resolve().parents[2]
 MOON_G = 1.62
 PAPER_TABLE_1 = "paper Table 1 (simulated, 5-hop chains): with ICP 1.0-1.9 %, without 12.9-34.7 %"
 
@@ -155,6 +161,156 @@ def summary(runs: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def _conftest():
+    """tests/conftest.py (ServerProcess, pairs, SIM_SPEED), also in a Dask worker that loaded this file
+    by its path, whose sys.path has no tests/."""
+    tests = str(REPO / "tests")
+    if tests not in sys.path:
+        sys.path.insert(0, tests)
+    import conftest
+    return conftest
+
+
+# ------------------------------------------------------------------------------------ servers
+
+WORLD = """seed = {seed}
+size_m = [{size}, {size}]
+[rocks]
+cover = {cover}
+"""
+
+
+def start_server(root: Path, seed: int, size: float, cover: float, settings: str = "",
+                 launch_errors: str = "") -> Any:
+    """A server on a fresh data directory with the repository's configs, the scene's world, the hopper
+    seeded by the scene, and hopping.toml settings (top level) and launch errors added."""
+    shutil.rmtree(root, ignore_errors=True)
+    configs = root / "configs"
+    shutil.copytree(REPO / "configs", configs)
+    shutil.copytree(REPO / "workflows", root / "workflows")   # hop-plan's workflow, beside the configs
+    (configs / "world.toml").write_text(WORLD.format(seed=seed, size=size, cover=cover))
+    text = (configs / "hopping.toml").read_text()
+    for old, new in (("[hopper]\nseed = 5", f"[hopper]\nseed = {seed}"),
+                     ("[hopper.launch_errors]", f"[hopper.launch_errors]\n{launch_errors}")):
+        if old not in text:
+            raise RuntimeError(f"configs/hopping.toml has no {old!r} to change")
+        text = text.replace(old, new)
+    for line in settings.splitlines():      # top-level keys: replace the file's own line
+        key = line.split("=")[0].strip()
+        text, found = re.subn(rf"^{re.escape(key)}\s*=.*$", line, text, count=1, flags=re.MULTILINE)
+        if not found:
+            text = line + "\n" + text
+    (configs / "hopping.toml").write_text(text)
+    return _conftest().ServerProcess(data_dir=root / "data", config_dir=configs).start(timeout=300)
+
+
+def peak_memory_mib(server) -> float:
+    for line in Path(f"/proc/{server.proc.pid}/status").read_text().splitlines():
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1]) / 1024.0
+    return float("nan")
+
+
+def hop_and_plan(client, products: Path, hop: str, plan: str) -> dict:
+    """One `hop` then `hop-plan`; what the products say of both (the plan's estimate, truth, timings)."""
+    reply = client.command(hop, timeout=600)
+    if " OK " not in f" {reply} ":
+        raise RuntimeError(f"{hop}: {reply}")
+    pairs = _conftest().pairs
+    hop_name = pairs(reply)["product"]
+    truth = json.loads((products / hop_name / "truth" / "hop.json").read_text())["truth"]
+    started = time.perf_counter()
+    reply = client.command(plan, timeout=1800)
+    seconds = time.perf_counter() - started
+    fields = pairs(reply)
+    name = fields.get("product") or reply.split("product=")[-1].split()[0].rstrip(";")
+    folder = products / name
+    if not (folder / "estimate.json").exists():   # not reconstructed: the hop's truth is still known
+        return {"hop": hop_name, "plan": name, "reply": reply[:300], "truth": truth, "plan_error": reply[:300],
+                "seconds": seconds, "frames": truth["flight"]["frames"]}
+    estimate = json.loads((folder / "estimate.json").read_text())
+    comparison = json.loads((folder / "truth" / "comparison.json").read_text())
+    frames = json.loads((products / hop_name / "hop.json").read_text())
+    return {"hop": hop_name, "plan": name, "reply": reply[:300], "ok": " OK " in f" {reply} ", "seconds": seconds,
+            "frames": estimate["frames"], "registered": estimate["registered"], "timings_s": estimate["timings_s"],
+            "touchdown_m": estimate["touchdown_m"], "launch_corrected_m": estimate["launch"]["corrected_m"],
+            "icp": estimate["icp"], "target_m": estimate["plan"]["target_m"] if estimate["plan"]["found"] else None,
+            "launch": estimate["plan"]["launch"], "truth": truth, "comparison": comparison,
+            "hop_frames_note": {k: frames[k] for k in ("frame_rate_hz",) if k in frames}}
+
+
+# ------------------------------------------------------------------------------------ chains
+def chain(seed: int, out: Path, hops: int, size: float, cover: float, sim_speed: float, octave: int | None) -> dict:
+    conftest = _conftest()
+    conftest.SIM_SPEED = sim_speed
+    root = out / f"chain{seed}"
+    server = start_server(root, seed, size, cover, f"sfm_first_octave = {octave}\n" if octave is not None else "")
+    products = root / "data" / "products"
+    heading = float(np.random.default_rng([seed, 1]).uniform(-180, 180))
+    records, stopped = [], None
+    try:
+        with server.connect(timeout=1800) as client:
+            hop = f"hop --speed {speed_for(1.0, 60):.4f} --elevation 60 --heading {heading:.2f}"
+            for number in range(1, hops + 1):
+                record = hop_and_plan(client, products, hop, f"hop-plan --goal-heading {heading:.2f}")
+                if "plan_error" in record:     # the hops so far still count; the chain cannot go on
+                    stopped = f"hop {number}: {record['plan_error']}"
+                    break
+                records.append(record)
+                print(f"chain {seed} hop {number}: {record['plan']} {record['seconds']:.0f} s", flush=True)
+                if number == hops:              # the last plan's target is for a hop not taken
+                    break
+                if record["launch"] is None:
+                    stopped = f"no target after hop {number}: {record['reply']}"
+                    break
+                launch = record["launch"]
+                hop = (f"hop --speed {launch['speed_mps']:.4f} --elevation {launch['elevation_deg']:.3f} "
+                       f"--heading {launch['heading_deg']:.3f}")
+            hop_map = conftest.pairs(client.command("hop-map", timeout=600)).get("product")
+            memory = peak_memory_mib(server)
+    finally:
+        server.stop()
+    if stopped:
+        print(f"chain {seed} stopped: {stopped}", flush=True)
+    return {"kind": "chain", "seed": seed, "heading_deg": heading, "hops": records, "peak_memory_mib": memory,
+            "hop_map": str(products / hop_map) if hop_map else None, "stopped": stopped}
+
+
+# ------------------------------------------------------------------------------------ singles
+def singles(seed: int, out: Path, count: int, size: float, cover: float, sim_speed: float, spin: float,
+            octave: int | None) -> dict:
+    conftest = _conftest()
+    conftest.SIM_SPEED = sim_speed
+    root = out / f"singles{seed}"
+    settings = "max_speed_mps = 6.0\n" + (f"sfm_first_octave = {octave}\n" if octave is not None else "")
+    server = start_server(root, seed, size, cover, settings, f"spin_deg_s = {spin}")
+    products = root / "data" / "products"
+    rng = np.random.default_rng([seed, 2])
+    records = []
+    try:
+        with server.connect(timeout=1800) as client:
+            for number in range(count):
+                distance, elevation = rng.uniform(1.0, 10.0), rng.uniform(45.0, 70.0)
+                # Toward the world's centre, so long hops stay on it.
+                hopper = records[-1]["truth"]["settled"]["centre_m"][:2] if records else [0.0, 0.0]
+                toward = math.degrees(math.atan2(-hopper[1], -hopper[0])) if math.hypot(*hopper) > 2 else None
+                heading = toward + rng.uniform(-60, 60) if toward is not None else rng.uniform(-180, 180)
+                heading = (heading + 180) % 360 - 180
+                hop = (f"hop --speed {speed_for(distance, elevation):.4f} --elevation {elevation:.2f} "
+                       f"--heading {heading:.2f}")
+                record = hop_and_plan(client, products, hop, "hop-plan")
+                record["commanded_m"] = distance
+                if "plan_error" in record:
+                    print(f"singles {seed} hop {number + 1}: {record['plan_error']}", flush=True)
+                    records.append(record)
+                    continue
+                records.append(record)
+                print(f"singles {seed} hop {number + 1}: {distance:.1f} m, {record['frames']} frames, "
+                      f"{record['seconds']:.0f} s", flush=True)
+            memory = peak_memory_mib(server)
+    finally:
+        server.stop()
+    return {"kind": "singles", "seed": seed, "hops": records, "peak_memory_mib": memory}
 
 
 # -- campaign hooks ----------------------------------------------------------------------------------------
@@ -162,25 +318,31 @@ def summary(runs: list[dict]) -> str:
 
 def runs(scenes: int = 5, first_chain_seed: int = 301, chain_hops: int = 5, hops: int = 30, jobs: int = 2,
          first_singles_seed: int = 401, size: float = 30.0, cover: float = 0.07, spin: float = 20.0,
-         kinds: list[str] | None = None) -> list[dict[str, Any]]:
-    """measure_hopping.py's runs: `chains` one per scene from seed 301, five hops each; `singles` the 30
-    hops split over `jobs` servers from seed 401 (15 and 15). The hopper is seeded by the scene."""
-    world = {"size_m": [size, size], "rocks": {"cover": cover}}
+         octave: int | None = None, kinds: list[str] | None = None) -> list[dict[str, Any]]:
+    """measure_hopping.py's runs, as its command lines make them: `chains` one per scene from seed 301,
+    five hops each; `singles` the 30 hops split over `jobs` servers from seed 401 (15 and 15). Each run
+    holds chain()'s or singles()'s arguments (the hopper is seeded by the scene)."""
+    scene: dict[str, Any] = {"size": size, "cover": cover} | ({"octave": octave} if octave is not None else {})
     made: list[dict[str, Any]] = []
     if "chains" in (kinds or ["chains", "singles"]):
-        made += [{"seed": seed, "KIND": "chain", "HOPS": chain_hops, "world": world,
-                  "configs": {"hopping.toml": {"hopper": {"seed": seed}}},
-                  "HEADING": f"{float(np.random.default_rng([seed, 1]).uniform(-180, 180)):.2f}",
-                  "SPEED": f"{speed_for(1.0, 60):.4f}"}
+        made += [{"seed": seed, "kind": "chain", "hops": chain_hops, **scene}
                  for seed in range(first_chain_seed, first_chain_seed + scenes)]
     if "singles" in (kinds or ["chains", "singles"]):
         share = [hops // jobs + (i < hops % jobs) for i in range(jobs)]
-        made += [{"seed": first_singles_seed + i, "KIND": "singles", "HOPS": n, "world": world,
-                  "configs": {"hopping.toml": {"max_speed_mps": 6.0,
-                                               "hopper": {"seed": first_singles_seed + i,
-                                                          "launch_errors": {"spin_deg_s": spin}}}}}
+        made += [{"seed": first_singles_seed + i, "kind": "singles", "hops": n, **scene, "spin": spin}
                  for i, n in enumerate(share)]
     return made
+
+
+def execute(run: dict[str, Any], run_dir: Path, sim_speed: float) -> dict[str, Any]:
+    """One run of the campaign, as measure_hopping.py plays it: chain() or singles() with the run's
+    arguments, its server under run_dir; the values are the script's record of the run."""
+    if run["kind"] == "chain":
+        return chain(run["seed"], Path(run_dir), run["hops"], run["size"], run["cover"], sim_speed, run.get("octave"))
+    if run["kind"] == "singles":
+        return singles(run["seed"], Path(run_dir), run["hops"], run["size"], run["cover"], sim_speed, run["spin"],
+                       run.get("octave"))
+    raise ValueError(f"kind {run['kind']!r}: expected chain or singles")
 
 
 def report(records: list[dict[str, Any]]) -> str:

@@ -1,11 +1,11 @@
-"""The measurement campaigns of tests/bench/campaigns beside navigation (maps) and the shared scoring of
-the hopping and routes measurements (tests/bench/*_scoring.py), fast: the files parse and name the
-scripts' runs, and the hooks give the expected figures on products and records written by hand."""
+"""The measurement campaigns of tests/bench/campaigns beside navigation (maps, hopping, routes) and their
+scoring shared with the scripts (tests/bench/*_scoring.py), fast: the files parse and name the scripts'
+runs, their execute hooks call what the scripts call, and the hooks give the expected figures on
+products and records written by hand."""
 from __future__ import annotations
 
 import json
 import math
-import tomllib
 from pathlib import Path
 
 import numpy as np
@@ -84,20 +84,27 @@ def test_maps_scores_and_report_from_the_products(tmp_path):
 # -- hopping -------------------------------------------------------------------------------------------------
 
 
-def test_the_hopping_runs_are_the_scripts_and_their_settings_reach_hopping_toml():
-    made = H.runs()
-    chains = [r for r in made if r["KIND"] == "chain"]
-    singles = [r for r in made if r["KIND"] == "singles"]
-    assert [r["seed"] for r in chains] == [301, 302, 303, 304, 305] and {r["HOPS"] for r in chains} == {5}
-    assert [(r["seed"], r["HOPS"]) for r in singles] == [(401, 15), (402, 15)]     # 30 hops over 2 servers
-    assert chains[0]["HEADING"] == f"{np.random.default_rng([301, 1]).uniform(-180, 180):.2f}"
-    assert float(chains[0]["SPEED"]) == pytest.approx(math.sqrt(1.62 / math.sin(math.radians(120))), abs=1e-4)
-    # The engine merges a run's configs over the repository's as here (writing this merged hopping.toml
-    # waits for dump_toml to write its arrays of tables: the issue 28 notes).
-    merged = C._merge(tomllib.loads((REPO / "configs" / "hopping.toml").read_text()),
-                      singles[1]["configs"]["hopping.toml"])
-    assert merged["hopper"]["seed"] == 402 and merged["hopper"]["launch_errors"]["spin_deg_s"] == 20.0
-    assert merged["max_speed_mps"] == 6.0 and singles[0]["world"] == {"size_m": [30.0, 30.0], "rocks": {"cover": 0.07}}
+def test_the_hopping_campaign_file_makes_the_scripts_runs_and_plays_them_as_the_script_does(tmp_path, monkeypatch):
+    loaded = C.load_campaign(CAMPAIGNS / "hopping.toml")
+    assert loaded.runs == H.runs() and loaded.sim_speed == 100.0             # measure_hopping.py's defaults
+    assert loaded.execute.endswith("hopping_scoring.py:execute") and loaded.report.endswith("hopping_scoring.py:report")
+    chains = [r for r in loaded.runs if r["kind"] == "chain"]
+    singles = [r for r in loaded.runs if r["kind"] == "singles"]
+    assert [r["seed"] for r in chains] == [301, 302, 303, 304, 305] and {r["hops"] for r in chains} == {5}
+    assert [(r["seed"], r["hops"], r["spin"]) for r in singles] == [(401, 15, 20.0), (402, 15, 20.0)]  # 30 over 2
+    assert {(r["size"], r["cover"]) for r in loaded.runs} == {(30.0, 0.07)} and "octave" not in chains[0]
+    assert H.runs(octave=0, kinds=["chains"], scenes=1) == [{"seed": 301, "kind": "chain", "hops": 5, "size": 30.0,
+                                                              "cover": 0.07, "octave": 0}]
+    # execute calls what measure_hopping.py calls, with the script's arguments: the same server, the same hops.
+    calls = []
+    monkeypatch.setattr(H, "chain", lambda *args: calls.append(("chain", *args)) or {"kind": "chain"})
+    monkeypatch.setattr(H, "singles", lambda *args: calls.append(("singles", *args)) or {"kind": "singles"})
+    assert H.execute(chains[0], tmp_path, 100.0) == {"kind": "chain"}
+    assert H.execute(singles[1], tmp_path, 100.0) == {"kind": "singles"}
+    assert calls == [("chain", 301, tmp_path, 5, 30.0, 0.07, 100.0, None),
+                     ("singles", 402, tmp_path, 15, 30.0, 0.07, 100.0, 20.0, None)]
+    with pytest.raises(ValueError, match="kind 'hop'"):
+        H.execute({"kind": "hop"}, tmp_path, 1.0)
 
 
 def hop(launch, landing, touchdown, corrected, target=None, icp=None, before=((0, 0), (0, 0))):
