@@ -9,16 +9,19 @@ the network; each repeat scored against the simulator's truth.
   largest deviation from the taught true path, images grabbed, orient looks and refusals;
 - the table (report) per matcher, sun, direction and orient.
 
-Used by tests/bench/measure_routes.py, and by a campaign file through the hooks `runs` and
-`campaign_report`. A routes run is not one fixed mission on one server: the repeats run on fresh
-servers over the teaching server's data directory (the route database), each started at a pose drawn
-near the taught TRUE path, so tests/bench/campaigns/routes.toml needs the campaign engine to hand one
-run's data to the next, or a hook that plays a whole scene (see the issue 28 notes).
+A routes run is not one fixed mission on one server: the repeats run on fresh servers over the
+teaching server's data directory (the route database), each started at a pose drawn near the taught
+TRUE path. scene() plays a whole scene so (teach, the repeats, the network);
+tests/bench/measure_routes.py runs scenes in a process pool, and tests/bench/campaigns/routes.toml one
+Dask run per scene through the hooks `runs`, `execute` and `campaign_report` below.
 """
 from __future__ import annotations
 
 import json
 import math
+import shutil
+import sys
+import time
 from pathlib import Path
 from typing import Any
 
@@ -29,12 +32,14 @@ from drivers.sim.world import World
 from toolbox.grid import GridSpec
 from toolbox.planning import MapLayers, PlanningParams, cells_to_world, inflate_hazards, plan_path, segment_is_clear
 
+REPO = Path(__file__).resolve().parents[2]
 SIZE_M = 50.0
 LEG_M = 2.5
 SUN = (135.0, 35.0)
 MOVED_SUN = (175.0, 55.0)        # 40 degrees in azimuth, 20 degrees higher
 START_OFFSET = (0.2, 5.0)        # metres, degrees off the route's first place
 ARRIVED_M = 0.5
+
 
 def lay_route(world: World, rng: np.random.Generator, start: tuple[float, float], lengths: tuple[float, float],
               heading: float | None = None) -> tuple[list[tuple[str, float]], float, float]:
@@ -151,6 +156,166 @@ def report(results: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def _conftest():
+    """tests/conftest.py (ServerProcess, pairs, SIM_SPEED), also in a Dask worker that loaded this file
+    by its path, whose sys.path has no tests/."""
+    tests = str(REPO / "tests")
+    if tests not in sys.path:
+        sys.path.insert(0, tests)
+    import conftest
+    return conftest
+
+
+# -- a scene: taught once, repeated on fresh servers (measure_routes.py's runs) -----------------------------
+
+WORLD = """seed = {seed}
+size_m = [{size}, {size}]
+rover_start = [{x:.4f}, {y:.4f}, {heading:.3f}]
+[sun]
+azimuth_deg = {azimuth}
+elevation_deg = {elevation}
+"""
+# The teacher steers (as a person at the controls would): the route taught is the route laid, clear
+# of rocks. Repeats drive with the simulated rover's drive error.
+TEACHER = """[drive_error]
+turn_scale = 0.0
+turn_noise_deg = 0.0
+distance_scale = 0.0
+heading_drift_deg_per_m = 0.0
+lateral_slip_per_m = 0.0
+"""
+
+
+def configs_for(root: Path, seed: int, pose: tuple[float, float, float], sun: tuple[float, float],
+                teacher: bool = False, orient: bool = False) -> Path:
+    configs = root / "configs"
+    shutil.rmtree(configs, ignore_errors=True)
+    shutil.copytree(REPO / "configs", configs)
+    routes = configs / "routes.toml"
+    routes.write_text(routes.read_text().replace("orient = false", f"orient = {str(orient).lower()}"))
+    (configs / "world.toml").write_text(WORLD.format(seed=seed, size=SIZE_M, x=pose[0], y=pose[1], heading=pose[2],
+                                                     azimuth=sun[0], elevation=sun[1]) + (TEACHER if teacher else ""))
+    return configs
+
+
+def teach(seed: int, out: Path) -> dict:
+    """Teach the main route r and, from its end, the branch b, in one session of one server."""
+    root = out / f"scene{seed}"
+    shutil.rmtree(root, ignore_errors=True)
+    laid = scene_routes(seed)
+    start = (*laid["start"], laid["heading"])
+    server = _conftest().ServerProcess(data_dir=root / "data",
+                                       config_dir=configs_for(root, seed, start, SUN, teacher=True))
+    server.start(timeout=300)
+    taught = {}
+    products = root / "data" / "products"
+    try:
+        with server.connect(timeout=600) as client:
+            taught["r"] = record(client, seed, "r", laid["actions"], products)
+            end = taught["r"]["taught"][-1]
+            try:
+                branch, _, _ = lay_route(laid["world"], laid["rng"], (end[0], end[1]), (8.0, 15.0),
+                                         heading=math.degrees(end[2]))
+                taught["b"] = record(client, seed, "b", branch, products)
+            except RuntimeError as exc:   # the main route is still scored
+                print(f"scene {seed}: no branch: {exc}", flush=True)
+    finally:
+        server.stop()
+    return {"seed": seed, **taught["r"], "branch": taught.get("b")}
+
+
+def record(client, seed: int, name: str, actions: list[tuple[str, float]], products: Path) -> dict:
+    assert " OK " in f" {client.command(f'route-record start --name {name}', timeout=300)} "
+    for kind, value in actions:
+        reply = client.command(f"drive --{kind} {value}", timeout=300)
+        if " OK " not in f" {reply} ":
+            raise RuntimeError(f"scene {seed}: drive --{kind} {value}: {reply}")
+    stop = _conftest().pairs(client.command("route-record stop", timeout=300))
+    taught = json.loads((products / stop["product"] / "truth" / "path.json").read_text())["path"]
+    return {"actions": actions, "legs": int(stop["triplets"]), "length_m": float(stop["length"]),
+            "bytes": int(stop["bytes"]), "bytes_per_m": float(stop["bytes_per_m"]), "taught": taught}
+
+
+def repeat(seed: int, out: Path, route: dict, matcher: str, sun_moved: bool, reverse: bool,
+           orient: bool = False) -> dict:
+    taught = np.array(route["taught"])
+    place = taught[-1] if reverse else taught[0]
+    goal = taught[0] if reverse else taught[-1]
+    rng = np.random.default_rng([seed, int(reverse), int(sun_moved), len(matcher)])
+    name = (f"{matcher}-{'moved' if sun_moved else 'same'}-{'reverse' if reverse else 'forward'}"
+            f"{'-orient' if orient else ''}")
+    command = f"route-follow --name r {'--reverse ' if reverse else ''}--matcher {matcher} --output {name}"
+    result = run_from(seed, out, name, near(place, rng), MOVED_SUN if sun_moved else SUN, [], command, goal, taught,
+                      orient)
+    return {"seed": seed, "matcher": matcher, "sun": "moved" if sun_moved else "same",
+            "direction": "reverse" if reverse else "forward", "orient": orient, **result,
+            "length_m": route["length_m"], "legs": route["legs"]}
+
+
+def network(seed: int, out: Path, route: dict) -> dict:
+    """route-connect, then route-go from near the main route's start to the branch's end."""
+    branch = route["branch"]
+    taught = np.vstack([route["taught"], branch["taught"]])
+    rng = np.random.default_rng([seed, 7])
+    command = f"route-go --to b:{branch['legs']} --output network"
+    result = run_from(seed, out, "network", near(route["taught"][0], rng), SUN, ["route-connect"], command,
+                      np.array(branch["taught"][-1]), taught)
+    return {"seed": seed, "matcher": "features", "sun": "same", "direction": "network", "orient": False, **result,
+            "length_m": route["length_m"] + branch["length_m"], "legs": route["legs"] + branch["legs"]}
+
+
+def near(place, rng: np.random.Generator) -> tuple[float, float, float]:
+    """A start START_OFFSET off a place: metres in a random direction, degrees either way."""
+    angle = rng.uniform(-math.pi, math.pi)
+    return (place[0] + START_OFFSET[0] * math.cos(angle), place[1] + START_OFFSET[0] * math.sin(angle),
+            math.degrees(place[2]) + rng.choice([-1, 1]) * START_OFFSET[1])
+
+
+def run_from(seed: int, out: Path, name: str, pose, sun, before: list[str], command: str, goal: np.ndarray,
+             taught: np.ndarray, orient: bool = False) -> dict:
+    """A fresh server on the scene's data directory with the rover at pose: the commands `before`,
+    then `command`, scored against the goal and the taught path."""
+    root = out / f"scene{seed}"
+    run = root / name
+    shutil.rmtree(run, ignore_errors=True)
+    server = _conftest().ServerProcess(data_dir=root / "data",
+                                       config_dir=configs_for(run, seed, pose, sun, orient=orient))
+    started = time.perf_counter()
+    server.start(timeout=300)
+    try:
+        with server.connect(timeout=1800) as client:
+            for line in before:
+                reply = client.command(line, timeout=1800)
+                if " OK " not in f" {reply} ":
+                    raise RuntimeError(f"scene {seed}: {line}: {reply}")
+            reply = client.command(command, timeout=1800)
+    finally:
+        server.stop()
+    seconds = time.perf_counter() - started
+    return {**score_product(root / "data" / "products" / name, goal, taught, " OK " in f" {reply} "),
+            "seconds": round(seconds, 1), "reply": reply[:200]}
+
+
+def scene(seed: int, out: Path, matchers: tuple[str, ...] = ("features", "contour"),
+          suns: tuple[str, ...] = ("same", "moved"), orients: tuple[bool, ...] = (False,),
+          with_network: bool = True) -> list[dict]:
+    route = teach(seed, out)
+    (out / f"scene{seed}" / "route.json").write_text(json.dumps(route))
+    print(f"scene {seed}: taught {route['length_m']:.1f} m in {route['legs']} legs, "
+          f"{route['bytes_per_m']:.0f} bytes/m", flush=True)
+    results = []
+    runs = [(repeat, (seed, out, route, matcher, sun == "moved", reverse, orient))
+            for matcher in matchers for sun in suns for reverse in (False, True) for orient in orients]
+    if route["branch"] and with_network:
+        runs.append((network, (seed, out, route)))
+    for function, arguments in runs:
+        result = function(*arguments)
+        results.append({**result, "bytes_per_m": route["bytes_per_m"]})
+        print(f"scene {seed} {result['matcher']} sun {result['sun']} {result['direction']}"
+              f"{' orient' if result.get('orient') else ''}: "
+              f"{'success' if result['success'] else 'FAILED'}, final {result['final_m']:.2f} m, "
+              f"deviation {result['max_deviation_m']:.2f} m, {result['seconds']:.0f} s", flush=True)
+    return results
 
 
 # -- campaign hooks ----------------------------------------------------------------------------------------
@@ -160,18 +325,27 @@ ORIENTS = {"off": (False,), "on": (True,), "both": (False, True)}
 
 def runs(scenes: int = 10, first_seed: int = 501, matchers: list[str] | None = None, suns: list[str] | None = None,
          orient: str = "off", network: bool = True) -> list[dict[str, Any]]:
-    """measure_routes.py's runs per scene, in its order: every matcher, sun, direction and orient setting,
-    then the network (route-connect, route-go) when the scene has a branch."""
-    made = []
-    for seed in range(first_seed, first_seed + scenes):
-        made += [{"seed": seed, "MATCHER": matcher, "SUN": sun, "DIRECTION": direction, "ORIENT": "on" if on else "off"}
-                 for matcher in matchers or ["features", "contour"] for sun in suns or ["same", "moved"]
-                 for direction in ("forward", "reverse") for on in ORIENTS[orient]]
-        if network:
-            made.append({"seed": seed, "MATCHER": "features", "SUN": "same", "DIRECTION": "network", "ORIENT": "off"})
-    return made
+    """measure_routes.py's runs: one per scene (its route taught once, then every matcher, sun, direction
+    and orient setting repeated on fresh servers over the taught data, then the network), with scene()'s
+    arguments as its command line gives them."""
+    if orient not in ORIENTS:
+        raise ValueError(f"orient {orient!r}: expected one of {', '.join(ORIENTS)}")
+    return [{"seed": seed, "matchers": list(matchers or ["features", "contour"]),
+             "suns": list(suns or ["same", "moved"]), "orient": orient, "network": network}
+            for seed in range(first_seed, first_seed + scenes)]
+
+
+def execute(run: dict[str, Any], run_dir: Path, sim_speed: float) -> dict[str, Any]:
+    """One scene of the campaign, as measure_routes.py plays it: scene() with the run's arguments, its
+    servers (teacher, then one per repeat) under run_dir at sim_speed (the script's is conftest's 50).
+    The values: the scene's rows (the script's results.jsonl lines) and their count of successes."""
+    _conftest().SIM_SPEED = sim_speed
+    rows = scene(run["seed"], Path(run_dir), tuple(run["matchers"]), tuple(run["suns"]), ORIENTS[run["orient"]],
+                 bool(run["network"]))
+    return {"length_m": rows[0]["length_m"] if rows else None, "repeats": len(rows),
+            "successes": sum(bool(row["success"]) for row in rows), "results": rows}
 
 
 def campaign_report(records: list[dict[str, Any]]) -> str:
-    """The table of a campaign's runs whose values are measure_routes.py's result of a run."""
-    return report([record["values"] for record in records if "final_m" in record.get("values", {})])
+    """measure_routes.py's table of the scenes' rows (execute's `results`)."""
+    return report([row for record in records for row in record.get("values", {}).get("results", [])])

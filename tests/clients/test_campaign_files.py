@@ -141,13 +141,23 @@ def test_hopping_chain_and_single_figures_from_hand_made_records():
 # -- routes --------------------------------------------------------------------------------------------------
 
 
-def test_the_routes_runs_are_the_scripts():
-    made = R.runs()
-    assert len(made) == 10 * (2 * 2 * 2 + 1) and {r["seed"] for r in made} == set(range(501, 511))
-    assert made[0] == {"seed": 501, "MATCHER": "features", "SUN": "same", "DIRECTION": "forward", "ORIENT": "off"}
-    assert made[8]["DIRECTION"] == "network"
-    both = R.runs(scenes=1, orient="both", network=False)
-    assert len(both) == 16 and {r["ORIENT"] for r in both} == {"off", "on"}
+def test_the_routes_campaign_file_makes_a_run_per_scene_played_as_the_script_does(tmp_path, monkeypatch):
+    loaded = C.load_campaign(CAMPAIGNS / "routes.toml")
+    assert loaded.runs == R.runs() and len(loaded.runs) == 10 and loaded.sim_speed == 50.0
+    assert loaded.runs[0] == {"seed": 501, "matchers": ["features", "contour"], "suns": ["same", "moved"],
+                              "orient": "off", "network": True}
+    assert loaded.execute.endswith("routes_scoring.py:execute") and loaded.report.endswith(":campaign_report")
+    assert R.runs(scenes=1, orient="both", network=False)[0]["orient"] == "both"
+    with pytest.raises(ValueError, match="orient 'sideways'"):
+        R.runs(orient="sideways")
+    # execute calls scene() as measure_routes.py does, at the campaign's speed, and counts the successes.
+    calls = []
+    rows = [{"length_m": 30.0, "success": True}, {"length_m": 30.0, "success": False}]
+    monkeypatch.setattr(R, "scene", lambda *args: calls.append(args) or rows)
+    values = R.execute(R.runs(scenes=1, orient="both", network=False)[0], tmp_path, 50.0)
+    assert calls == [(501, tmp_path, ("features", "contour"), ("same", "moved"), (False, True), False)]
+    assert values == {"length_m": 30.0, "repeats": 2, "successes": 1, "results": rows}
+    assert R._conftest().SIM_SPEED == 50.0
 
 
 def test_route_chords_keep_clear_of_blocked_cells():
@@ -182,7 +192,8 @@ def test_routes_scores_and_table_from_the_products(tmp_path):
              "length_m": 10.0, "bytes_per_m": 2048.0, **good},
             {"seed": 502, "matcher": "features", "sun": "same", "direction": "forward", "orient": False,
              "length_m": 10.0, "bytes_per_m": 2048.0, **short}]
-    text = R.campaign_report([{"run": {"seed": 501}, "values": rows[0]}, {"run": {"seed": 502}, "values": rows[1]}])
+    text = R.campaign_report([{"run": {"seed": 501}, "values": {"results": rows[:1]}},
+                              {"run": {"seed": 502}, "values": {"results": rows[1:]}}])
     assert text == R.report(rows)                 # measure_routes.py's table, from the same code
     assert text.splitlines()[0] == "2 scenes, routes 10.0-10.0 m, 2.0 KiB stored per metre (mean)"
     assert text.splitlines()[2].split()[:6] == ["features", "same", "forward", "off", "1/2", "0.60"]
