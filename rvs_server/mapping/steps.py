@@ -289,11 +289,15 @@ def localise(step: StepContext, params: AlignParams, points: dict) -> dict[str, 
 class GridParams(StepParams):
     cell: float = Field(0.05, ge=0.005, le=1.0, description="cell size, metres")
     max_extent_m: float = Field(12.0, gt=0, description="the grid spans at most this far from the rover")
+    top_band_m: float = Field(0.0, ge=0, le=0.5, description="0: a cell's highest point is its height; more: the "
+                              "mean of its points within this band of the highest (unbiased under noise, see "
+                              "toolbox/mapping/dem.py points_to_dem)")
 
 
 @operations.register("dem.grid", GridParams, inputs=("points",))
 def grid(step: StepContext, params: GridParams, points: dict) -> dict[str, Any]:
-    """Direct reconstruction: every point to its cell, the highest wins; no data stays NaN."""
+    """Direct reconstruction: every point to its cell, the highest wins (or the mean of the top band);
+    no data stays NaN."""
     cloud = points["points"]
     pose = step.job.devices.rover.pose_estimate
     near = np.all(np.abs(cloud[:, :2] - [pose.x, pose.y]) <= params.max_extent_m, axis=1)
@@ -301,7 +305,7 @@ def grid(step: StepContext, params: GridParams, points: dict) -> dict[str, Any]:
     if len(cloud) == 0:
         raise ValueError("no points to make a DEM from (every view was empty or filtered out)")
     spec = dem_tools.grid_covering(cloud, params.cell, margin=params.cell)
-    dem = step.native(dem_tools.points_to_dem, cloud, spec)
+    dem = step.native(dem_tools.points_to_dem, cloud, spec, params.top_band_m)
     return {"spec": dem.spec, "heights": dem.heights, "counts": dem.counts}
 
 

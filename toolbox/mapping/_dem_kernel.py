@@ -41,9 +41,27 @@ def highest_and_count(flat: np.ndarray, heights32: np.ndarray, heights: np.ndarr
             heights[f] = np.nan
 
 
+@numba.njit(cache=True, nogil=True, boundscheck=False)
+def top_band_means(flat: np.ndarray, heights32: np.ndarray, top_band: float, heights: np.ndarray) -> None:
+    """heights (each cell's highest on entry) takes the mean of the cell's points within top_band of it
+    (float64 sums, as dem._top_band_means)."""
+    sums = np.zeros(heights.shape[0])
+    members = np.zeros(heights.shape[0], np.int64)
+    band = np.float32(top_band)
+    for i in range(flat.shape[0]):
+        f = flat[i]
+        if f >= 0 and heights32[i] >= heights[f] - band:
+            sums[f] += heights32[i]
+            members[f] += 1
+    for f in range(heights.shape[0]):
+        if members[f] > 0:
+            heights[f] = np.float32(sums[f] / members[f])
+
+
 def points_to_dem_arrays(points: np.ndarray, origin_x: float, origin_y: float, cell: float, rows: int,
-                         cols: int) -> tuple[np.ndarray, np.ndarray]:
-    """(heights float32 with NaN, counts int32), both flat (rows * cols), of float64 points (N, 3)."""
+                         cols: int, top_band: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """(heights float32 with NaN, counts int32), both flat (rows * cols), of float64 points (N, 3);
+    top_band > 0: the mean of each cell's points within top_band of its highest (dem.points_to_dem)."""
     cells = rows * cols
     flat = np.empty(len(points), np.int32 if cells < 2 ** 31 else np.int64)
     heights32 = np.empty(len(points), np.float32)
@@ -51,4 +69,6 @@ def points_to_dem_arrays(points: np.ndarray, origin_x: float, origin_y: float, c
     heights = np.full(cells, -np.inf, np.float32)
     counts = np.zeros(cells, np.int32)
     highest_and_count(flat, heights32, heights, counts)
+    if top_band > 0:
+        top_band_means(flat, heights32, top_band, heights)
     return heights, counts
