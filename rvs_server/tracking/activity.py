@@ -77,7 +77,10 @@ class TrackActivity(Activity):
         self.track.seen_s = max(target.sim_s, server.clock.now())   # coasting counts from the start
         self.locked = False
         self.ground_z = target.z
-        self._heights: list[float] = [target.height]
+        # The search's height seeds the person's height only where it is a whole grown person's: a
+        # search at range may have had the head above its view (a 1.44 m "person" 1.80 m tall made
+        # every later frame's ground 0.35 m high, the feet's ground taken for hidden).
+        self._heights: list[float] = [target.height] if self.model.height(target.height) >= 1.0 else []
         self.lost = False
         self._lost_s = -math.inf                  # when it was lost (simulation seconds)
         self._sweep_to: float | None = None       # lost: the pan end the PTU sweeps to

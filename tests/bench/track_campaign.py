@@ -61,8 +61,9 @@ BANDS = ((0.0, 4.0), (4.0, 6.0), (6.0, 8.0), (8.0, 10.0))
 RESULTS = Path(__file__).resolve().parent / "results" / "track.jsonl"
 # The tracker's revision, part of the results' settings so a changed tracker is measured anew: the
 # runs without a TRACKER coasted past the sensor's range; "lost-past-range" took the ground under a
-# person from the ring round it alone (0.1-0.3 m high at 7-9 m); "feet-ground" from its feet.
-TRACKER = "feet-ground"
+# person from the ring round it alone (0.1-0.3 m high at 7-9 m); "feet-ground" from its feet;
+# "whole-prior" seeds the person's height with the search's only where it is a whole person's.
+TRACKER = "whole-prior"
 
 
 def world_toml(seed: int) -> str:
