@@ -48,6 +48,9 @@ class MappingSettings(Settings):
     max_reach_cells: float = Field(3.0, ge=0, le=50, description="TOF DEM holes are filled only this close to data")
     stereo_max_reach_cells: float = Field(3.0, ge=0, le=50, description="the same for stereo DEMs (whose small "
                                           "holes are often rocks the pair could not match)")
+    tof_top_band_m: float = Field(0.02, ge=0, le=0.5, description="a TOF DEM cell's height is the mean of its "
+                                  "points within this band of its highest (0: the highest point)")
+    stereo_top_band_m: float = Field(0.02, ge=0, le=0.5, description="the same for stereo DEMs")
     slope_limit_deg: float = Field(20.0, gt=0, lt=90)
     step_limit: float = Field(0.10, gt=0)
     tof_step_min_cells: int = Field(2, ge=1, le=25, description="a TOF step counts when this many cells "

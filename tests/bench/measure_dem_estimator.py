@@ -64,7 +64,7 @@ def remapped(product: Path, sensor: str, band: float, work: Path) -> Path:
     if existing:
         return existing[-1]
     text = (REPO / "workflows" / f"{WORKFLOW[sensor]}.yaml").read_text()
-    text, count = re.subn(r"(op: dem\.grid\n(?:.*\n)*?\s+params: \{)", rf"\1top_band_m: {band}, ", text, count=1)
+    text, count = re.subn(r"top_band_m: \$config\.\w+", f"top_band_m: {band}", text, count=1)
     if count != 1:
         raise RuntimeError(f"no dem.grid params in {WORKFLOW[sensor]}.yaml to set the band in")
     flow = work / f"{WORKFLOW[sensor]}-band{band:g}.yaml"

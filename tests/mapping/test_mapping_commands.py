@@ -125,7 +125,7 @@ def test_a_workflow_edited_by_hand_changes_the_result(server_factory, tmp_path):
 @pytest.mark.parametrize("edit, words", [
     (lambda t: t.replace("op: dem.grid", "op: dem.gird"), ["step 5 (grid)", "unknown operation 'dem.gird'"]),
     (lambda t: t.replace("inputs: {points: body}", "inputs: {points: nowhere}"), ["step 5 (grid)", "'nowhere'"]),
-    (lambda t: t.replace("params: {cell: $args.cell}", "params: {cell: -1}"), ["step 5 (grid)", "params.cell"]),
+    (lambda t: t.replace("params: {cell: $args.cell,", "params: {cell: -1,"), ["step 5 (grid)", "params.cell"]),
 ])
 def test_a_broken_workflow_is_refused_before_any_device_moves(shared_server, edit, words):
     """One server for the three edits: the workflow is read at each command, and each case puts the
