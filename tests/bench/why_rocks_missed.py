@@ -1,7 +1,10 @@
 """Why the maps miss rocks (issue 27 item 1): each true obstacle a product saw but did not call a hazard,
 put in one class from the product's own files.
 
-    .venv/bin/python tests/bench/why_rocks_missed.py PRODUCT_DIR... [--sensor tof|stereo] [--within 4.0]
+    .venv/bin/python tests/bench/why_rocks_missed.py PRODUCT_DIR... [--within 4.0]
+
+A product re-mapped onto another grid (`rvs remap` copies the truth only where the grid is the same)
+takes its truth from the source its product.json names, placed onto its own grid.
 
 A rock is a connected patch of truth/obstacles.tif (protruding over the step threshold, 0.1 m); it is
 seen when a known DEM cell lies on it and missed when no hazard cell lies on it or next to it (the
@@ -29,6 +32,7 @@ from scipy import ndimage
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 from rvs_server.products.rasters import read_geotiff  # noqa: E402
+from toolbox.mapping.dem import _overlap_slices  # noqa: E402
 
 STEP_LIMIT = 0.10
 READ_LOW_M = 0.03
@@ -36,14 +40,36 @@ EDGE_POINTS = 3
 RING_M = 0.3       # the ground round a rock: this far beyond its outline
 
 
+def truth_of(product: Path) -> Path:
+    """The product's truth/ folder, or its source's (a remap onto another grid copies none)."""
+    if (product / "truth" / "height.tif").exists():
+        return product / "truth"
+    source = json.loads((product / "product.json").read_text()).get("source", {})
+    path = Path(source.get("path", "")) if isinstance(source, dict) else Path(str(source))
+    if not (path / "truth" / "height.tif").exists():
+        raise FileNotFoundError(f"{product}: no truth/ and no source product with one (product.json source)")
+    return path / "truth"
+
+
+def on_grid(path: Path, spec) -> np.ndarray:
+    """A truth grid placed onto `spec` (cell-aligned grids; NaN where it does not reach)."""
+    values, source = read_geotiff(path)
+    out = np.full(spec.shape, np.nan, dtype=np.float32)
+    target, inside = _overlap_slices(source, spec)
+    if target is not None:
+        out[target] = values[inside]
+    return out
+
+
 def missed_rocks(product: Path, within: float) -> list[dict]:
     dem, spec = read_geotiff(product / "dem.tif")
     counts = read_geotiff(product / "counts.tif")[0]
     step = read_geotiff(product / "step.tif")[0]
     code = read_geotiff(product / "hazard.tif")[0]
-    truth = read_geotiff(product / "truth" / "height.tif")[0]
-    obstacles = read_geotiff(product / "truth" / "obstacles.tif")[0] > 0.5
-    rover = json.loads((product / "truth" / "state.json").read_text())["rover"]
+    truth_dir = truth_of(product)
+    truth = on_grid(truth_dir / "height.tif", spec)
+    obstacles = on_grid(truth_dir / "obstacles.tif", spec) > 0.5
+    rover = json.loads((truth_dir / "state.json").read_text())["rover"]
     known = np.isfinite(dem)
     hazard = known & (code != 255) & (code.astype(np.int64) % 2 == 1)
     near_hazard = ndimage.binary_dilation(hazard, iterations=1)
