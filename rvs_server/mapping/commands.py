@@ -55,6 +55,7 @@ class MappingSettings(Settings):
     step_limit: float = Field(0.10, gt=0)
     tof_step_min_cells: int = Field(2, ge=1, le=25, description="a TOF step counts when this many cells "
                                     "within 0.1 m exceed the limit (fewer scale it down: noise)")
+    stereo_step_min_cells: int = Field(2, ge=1, le=25, description="the same for stereo maps")
     roughness_limit: float = Field(0.04, gt=0)
     truth_step: float = Field(0.10, gt=0, description="step height of the truth obstacle grid in products")
     keep_views: bool = Field(True, description="products keep their raw views and context (views/), so "
