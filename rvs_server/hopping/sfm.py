@@ -76,6 +76,8 @@ __all__ = ["SfmConfig", "HopReconstruction", "reconstruct_hop", "colmap_camera",
 IMAGE_DIGITS = 4
 MAPPERS = get_args(Mapper)
 
+MIN_SFM_FRAMES = 3          # two views and one more to check them against
+
 
 # ------------------------------------------------------------------------------------------- SfM
 @dataclass(frozen=True)
@@ -203,8 +205,8 @@ def _check_sfm_input(frames, timestamps, intrinsics: Intrinsics):
                          f"{intrinsics.width}x{intrinsics.height}")
     if timestamps.shape != (len(frames),):
         raise ValueError(f"{len(frames)} frames but timestamps of shape {timestamps.shape}")
-    if len(frames) < 3:
-        raise ValueError(f"structure from motion needs at least 3 frames, got {len(frames)}")
+    if len(frames) < MIN_SFM_FRAMES:
+        raise ValueError(f"structure from motion needs at least {MIN_SFM_FRAMES} frames, got {len(frames)}")
     return frames, timestamps, intrinsics
 
 

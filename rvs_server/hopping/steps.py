@@ -38,7 +38,7 @@ from rvs_server.hopping.estimate import (
     flight_check,
 )
 from rvs_server.hopping.settings import Mapper, SfmSetting
-from rvs_server.hopping.sfm import HopReconstruction, SfmConfig, densify, reconstruct_hop_quietly
+from rvs_server.hopping.sfm import MIN_SFM_FRAMES, HopReconstruction, SfmConfig, densify, reconstruct_hop_quietly
 from rvs_server.hopping.store import HopObservation, cloud_of, load_observation
 from rvs_server.products.ply import read_ply
 from rvs_server.workflow import Operations, StepContext, StepParams
@@ -94,6 +94,9 @@ class SfmParams(HopParams):
 def structure_from_motion(step: StepContext, params: SfmParams) -> dict[str, Any]:
     """COLMAP on the hop's frames: the first reconstruction that is a clean flight, and each attempt."""
     observation = observation_of(step, params.hop)
+    if len(observation.frames) < MIN_SFM_FRAMES:   # a flight cut short: the season soak met one with 1 frame
+        raise Refused(f"{params.hop} recorded {len(observation.frames)} frame(s) of its flight: structure from motion "
+                      f"needs at least {MIN_SFM_FRAMES}; hop again with a longer flight")
     started = time.perf_counter()
     with colmap_quiet():
         sfm, attempts = reconstruct_cleanly(step, observation, params, step.scratch / "colmap")

@@ -190,6 +190,23 @@ def test_hop_plan_tries_each_sfm_setting_and_refuses_a_flight_none_makes_clean(s
     assert all(a["problem"] and 0 <= a["fit_share"] < 0.6 for a in attempts), attempts
 
 
+def test_a_flight_of_too_few_frames_is_refused_by_name_not_a_crash(server_factory):
+    """A hop whose recording holds 1 frame (the season soak met one: its hop-plan ended 500 internal with
+    COLMAP's ValueError): hop-plan refuses it 400, naming the hop and the frames, and the server goes on."""
+    server = server_factory(configs={"hopping.toml": HOPPING})
+    products = server.data_dir / "products"
+    with server.connect(timeout=300) as c:
+        assert pairs(c.command("hop --speed 1.5 --elevation 60 --heading 0", timeout=120))["product"] == "hop-001"
+        path = products / "hop-001" / "frames.npz"
+        with np.load(path) as data:
+            arrays = {name: data[name][:1] if name in ("frames", "timestamps") else data[name] for name in data.files}
+        np.savez_compressed(path, **arrays)
+        line, _ = command(c, "hop-plan", timeout=120)
+        assert line.split()[1:3] == ["ERR", "400"], line
+        assert "hop-001 recorded 1 frame(s)" in line and "at least 3" in line, line
+        assert pairs(c.command("status"))["mode"] == "standby"
+
+
 def test_break_and_continue_resume_hop_plan_at_the_step_and_give_the_same_product(server_factory, tmp_path,
                                                                                   first_plan):
     """hop-plan broken in its dense step: the break stops the step in the native worker at once (the
