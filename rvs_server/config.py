@@ -348,11 +348,13 @@ T = TypeVar("T")
 
 
 class PerSensor(BaseModel, Generic[T]):
-    """A setting for each mapping sensor."""
+    """A setting for each mapping sensor; the fused map (TOF and stereo together) takes the TOF's
+    unless it has its own."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
     tof: T
     stereo: T
+    fused: T | None = None
 
     @model_validator(mode="before")
     @classmethod
@@ -361,4 +363,6 @@ class PerSensor(BaseModel, Generic[T]):
         return value if isinstance(value, (dict, PerSensor)) else {"tof": value, "stereo": value}
 
     def of(self, sensor: str) -> T:
+        if sensor == "fused":
+            return self.tof if self.fused is None else self.fused
         return getattr(self, sensor)

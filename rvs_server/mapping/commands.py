@@ -1,4 +1,4 @@
-"""Maps from what the rover sees: dem-full-tof, dem-update-tof, dem-full, dem-update.
+"""Maps from what the rover sees: dem-full-tof, dem-update-tof, dem-full, dem-update, dem-full-fused.
 
 Each command runs its workflow (workflows/<command>.yaml) and writes a product: the DEM and the
 slope, step, roughness and hazard maps as float32 GeoTIFF (NaN no-data, origin and cell size in the
@@ -18,7 +18,7 @@ from pydantic import Field
 from rvs_server.config import CommandConfig, Range, SafeName, Settings
 from rvs_server.dispatch import Module
 from rvs_server.jobs import JobContext
-from rvs_server.mapping.steps import operations
+from rvs_server.mapping.steps import fusion_record, operations
 from rvs_server.mapping.stored_views import keep_views
 from rvs_server.products.canvas import side_by_side
 from rvs_server.products.ply import write_ply
@@ -88,7 +88,7 @@ class WorkflowArgs(CommandConfig):
 
 def _args(ctx: JobContext, cfg: DemConfig, sensor: str) -> WorkflowArgs:
     s: MappingSettings = ctx.settings
-    return WorkflowArgs(pan=cfg.pan, tilt=cfg.tilt or (s.tof_tilt if sensor == "tof" else s.stereo_tilt),
+    return WorkflowArgs(pan=cfg.pan, tilt=cfg.tilt or (s.stereo_tilt if sensor == "stereo" else s.tof_tilt),
                         cell=cfg.cell or s.cell, overlap=cfg.overlap if cfg.overlap is not None else s.overlap)
 
 
@@ -133,6 +133,10 @@ def run_mapping(ctx: JobContext, cfg: DemConfig, sensor: str) -> dict[str, Any]:
                               "steps": provenance, "args": args.model_dump(mode="json")})
     write_started = time.perf_counter()
     summary = write_maps(ctx, product, results)
+    fusion = fusion_record(results)
+    if fusion is not None:
+        summary.update(stereo_bias=f"{fusion['stereo_bias_m']:.4f}", shared_cells=fusion["shared_cells"])
+        product.note("fusion", fusion)
     if ctx.settings.keep_views:
         keep_views(product, workflow, results, ctx.devices.rover.pose_estimate, ctx.server.calibration(),
                    ctx.settings, args, command)
@@ -292,3 +296,9 @@ def dem_full(ctx: JobContext, cfg: DemConfig) -> dict[str, Any]:
 def dem_update(ctx: JobContext, cfg: DemUpdateConfig) -> dict[str, Any]:
     """New stereo views merged into the last DEM."""
     return run_mapping(ctx, cfg, "stereo")
+
+
+@module.job("dem-full-fused", DemConfig, devices=("ptu", "tof", "cameras"), validate=_validator("dem-full-fused"))
+def dem_full_fused(ctx: JobContext, cfg: DemConfig) -> dict[str, Any]:
+    """One DEM, ortho-image and hazard maps from the SR4000 and the stereo pair at the same views."""
+    return run_mapping(ctx, cfg, "fused")

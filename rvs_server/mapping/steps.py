@@ -22,6 +22,7 @@ from toolbox.colour import grey
 from toolbox.geometry import RoverPose, camera_to_world, footprint_polygon, relative_pose
 from toolbox.mapping import dem as dem_tools
 from toolbox.mapping import hazard as hazard_tools
+from toolbox.mapping.fuse import FusionNoise, fuse_dems
 from toolbox.mapping.localisation import AlignConfig, align_to_map, apply
 from toolbox.mapping.ortho import merge_views, ortho_image
 from toolbox.mapping.stereo import SgbmConfig, StereoCalibration, rectification, stereo_points
@@ -286,6 +287,15 @@ def localise(step: StepContext, params: AlignParams, points: dict) -> dict[str, 
             "accepted": bool(alignment is not None and alignment.accepted), "reason": reason, **summary}
 
 
+@operations.register("localise.apply", inputs=("points", "alignment"))
+def localise_apply(step: StepContext, params: StepParams, points: dict, alignment: dict) -> dict[str, Any]:
+    """Another sensor's points of the same views moved by the correction a localise.align step found
+    (navigate-fused: the SR4000's cloud is aligned to the map, the stereo pair's follows it)."""
+    correction = np.asarray(alignment["correction"])
+    return {"points": apply(correction, points["points"]), "correction": correction,
+            "accepted": bool(alignment["accepted"])}
+
+
 class GridParams(StepParams):
     cell: float = Field(0.05, ge=0.005, le=1.0, description="cell size, metres")
     max_extent_m: float = Field(12.0, gt=0, description="the grid spans at most this far from the rover")
@@ -307,6 +317,44 @@ def grid(step: StepContext, params: GridParams, points: dict) -> dict[str, Any]:
     spec = dem_tools.grid_covering(cloud, params.cell, margin=params.cell)
     dem = step.native(dem_tools.points_to_dem, cloud, spec, params.top_band_m)
     return {"spec": dem.spec, "heights": dem.heights, "counts": dem.counts}
+
+
+class FuseParams(StepParams):
+    """toolbox/mapping/fuse.py's FusionNoise, its defaults, editable in a workflow."""
+
+    tof_sigma_m: float = Field(FusionNoise.tof_sigma_m, gt=0, description="SR4000 cell height noise at "
+                               "tof_reference_m, growing in proportion to range")
+    tof_reference_m: float = Field(FusionNoise.tof_reference_m, gt=0)
+    stereo_sigma_per_m2: float = Field(FusionNoise.stereo_sigma_per_m2, gt=0, description="stereo cell height "
+                                       "noise per range squared")
+    stereo_sigma_min_m: float = Field(FusionNoise.stereo_sigma_min_m, gt=0)
+    bias_range_m: float = Field(FusionNoise.bias_range_m, gt=0, description="the stereo bias is measured on cells "
+                                "both saw within this")
+    min_shared_cells: int = Field(FusionNoise.min_shared_cells, ge=1, description="fewer shared cells: no bias "
+                                  "correction")
+    disagree_sigmas: float = Field(FusionNoise.disagree_sigmas, gt=0, description="heights further apart than this "
+                                   "many combined sigmas: the TOF's stands (the stereo's errors are heavy-tailed)")
+
+
+@operations.register("dem.fuse", FuseParams, inputs=("tof", "stereo"))
+def fuse(step: StepContext, params: FuseParams, tof: dict, stereo: dict) -> dict[str, Any]:
+    """The TOF and stereo DEMs of the same views as one: the stereo bias measured against the TOF and
+    taken off, shared cells weighted by each sensor's noise at their range (toolbox/mapping/fuse.py)."""
+    pose = step.job.devices.rover.pose_estimate
+    fused = fuse_dems(dem_tools.Dem(tof["spec"], tof["heights"], tof["counts"]),
+                      dem_tools.Dem(stereo["spec"], stereo["heights"], stereo["counts"]),
+                      (pose.x, pose.y), FusionNoise(**params.model_dump()))
+    return {"spec": fused.dem.spec, "heights": fused.dem.heights, "counts": fused.dem.counts, **fused.summary()}
+
+
+FUSION_KEYS = ("stereo_bias_m", "bias_measured", "shared_cells", "tof_only", "stereo_only", "weighted", "tof_kept")
+
+
+def fusion_record(results: dict[str, Any]) -> dict[str, Any] | None:
+    """What a workflow's dem.fuse step (named `fused`) found, as plain JSON values; None without one."""
+    if "fused" not in results:
+        return None
+    return {key: np.asarray(results["fused"][key]).item() for key in FUSION_KEYS}
 
 
 class FillParams(StepParams):

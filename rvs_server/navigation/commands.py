@@ -186,7 +186,7 @@ class PlanPathConfig(CommandConfig):
     from_: Point | None = Field(None, description="start X,Y in the world frame, metres; default the rover")
     to: Point = Field(..., description="goal X,Y in the world frame, metres")
     weight: float | None = Field(None, ge=0, le=1, description="distance weight w; default navigation.toml")
-    sensor: Literal["tof", "stereo"] = Field("tof", description="whose latest map to plan on")
+    sensor: Literal["tof", "stereo", "fused"] = Field("tof", description="whose latest map to plan on")
     output: SafeName | None = None
 
 
@@ -194,7 +194,8 @@ class PoseConfig(CommandConfig):
     pose: str = Field(..., description="X,Y,HEADING: metres, metres, degrees counter-clockwise from east")
 
 
-LAST_MAP = {"tof": "dem-(full|update)-tof", "stereo": "dem-(full|update)"}
+LAST_MAP = {"tof": "dem-(full|update)-tof", "stereo": "dem-(full|update)", "fused": "dem-full-fused"}
+FIRST_MAP = {"tof": "dem-full-tof", "stereo": "dem-full", "fused": "dem-full-fused"}
 
 
 def local_map(server: Host, sensor: str) -> tuple[MapLayers, str, Path, dict[str, np.ndarray]]:
@@ -224,8 +225,7 @@ def latest_map_folder(server: Host, sensor: str) -> tuple[str, Path]:
         candidates.append((navigated.path / "product.json", f"{navigated.name}/{cycles[-1].parent.name}",
                            cycles[-1].parent))
     if not candidates:
-        raise WrongMode(f"no {sensor} map yet: run {'dem-full-tof' if sensor == 'tof' else 'dem-full'} "
-                        f"or navigate --sensor {sensor} first")
+        raise WrongMode(f"no {sensor} map yet: run {FIRST_MAP[sensor]} or navigate --sensor {sensor} first")
     _, name, folder = max(candidates, key=lambda c: c[0].stat().st_mtime)
     return name, folder
 

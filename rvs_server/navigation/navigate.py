@@ -45,6 +45,7 @@ from rvs_server.mapping import (
     MappingSettings,
     WorkflowArgs,
     check_workflow,
+    fusion_record,
     leave_camera_as_acquired,
     operations,
     write_maps,
@@ -99,13 +100,15 @@ from toolbox.planning.paths import path_length
 if TYPE_CHECKING:
     from rvs_server.host import Host
 
-SENSOR_DEVICE = {"tof": "tof", "stereo": "cameras"}
+SENSOR_DEVICES = {"tof": ("tof",), "stereo": ("cameras",), "fused": ("tof", "cameras")}
+ORIENT_SENSOR = {"tof": "tof", "stereo": "stereo", "fused": "tof"}   # fused: orient with the precise one
 MAP_CLOUD_VOXEL_M = 0.05
 
 
 class NavigateConfig(CommandConfig):
     to: Point = Field(..., description="goal X,Y in the world frame, metres")
-    sensor: Literal["tof", "stereo"] = Field("tof", description="which sensor maps the way")
+    sensor: Literal["tof", "stereo", "fused"] = Field("tof", description="which sensor maps the way (fused: both, "
+                                                     "workflows/navigate-fused.yaml)")
     tolerance: float = Field(0.3, gt=0, le=10, description="arrived when the estimated position is this close, metres")
     max_steps: int = Field(12, ge=1, le=100, description="cycles of map, plan and drive at most; after the last "
                            "drive the rover maps once more to see whether it arrived")
@@ -152,7 +155,8 @@ class NavigateArgs(WorkflowArgs):
 
 
 def _validate(server: Host, cfg: NavigateConfig) -> None:
-    server.devices[SENSOR_DEVICE[cfg.sensor]].require_healthy()
+    for device in SENSOR_DEVICES[cfg.sensor]:
+        server.devices[device].require_healthy()
     check_workflow(server, f"navigate-{cfg.sensor}", NavigateArgs)
     check_reach(server, None, cfg.to)
 
@@ -244,7 +248,7 @@ class Navigation:
         record: dict[str, Any]
         self.rover.pose_estimate = state.rover
         try:
-            outcome = orient_here(self.ctx, sensor, self.orient_settings)
+            outcome = orient_here(self.ctx, ORIENT_SENSOR[sensor], self.orient_settings)
         except OrientFailed as failed:
             record = {"failed": failed.failure.reason, "sentence": failed.failure.sentence}
         else:
@@ -290,7 +294,8 @@ class Navigation:
         folder = working / f"cycle-{cycle:02d}"
         results, provenance = run_workflow(workflow, operations, params, CycleJob(self.ctx, cycle, state.best_percent),
                                            folder)
-        leave_camera_as_acquired(self.ctx, results.get("acquired") or {})
+        for acquisition in ("acquired_tof", "acquired"):      # navigate-fused has both
+            leave_camera_as_acquired(self.ctx, results.get(acquisition) or {})
         aligned = results["aligned"]
         after = RoverPose.from_matrix(np.asarray(aligned["correction"]) @ before.to_world())
         if self.orienting and aligned["accepted"]:   # the odometer's chain follows the map's correction
@@ -313,6 +318,9 @@ class Navigation:
                                 for k in ("accepted", "reason", "dx", "dy", "dz", "dyaw", "fitness", "rmse",
                                           "constraint")},
                   "map": summary, "pan": list(args.pan), "steps": [p["step"] for p in provenance]}
+        fusion = fusion_record(results)      # navigate-fused: the stereo bias against the TOF, and the counts
+        if fusion is not None:
+            record["fusion"] = fusion
         true = self.drive_by.true_pose()
         if true is not None:
             record["pose_true"] = true

@@ -23,7 +23,7 @@ from scipy import ndimage
 
 from rvs_server.products.rasters import read_geotiff
 
-REACH_M = {"tof": 4.5, "stereo": 4.5}  # the same disc for both, inside both sensors' range
+REACH_M = {"tof": 4.5, "stereo": 4.5, "fused": 4.5}  # the same disc for all, inside both sensors' range
 SENSORS = ("tof", "stereo")
 KEYS = ("rmse", "p95", "bias", "observed", "recall", "rocks", "false_hazard")
 

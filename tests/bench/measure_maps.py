@@ -1,8 +1,9 @@
-"""Accuracy of the maps against the simulated world's truth, TOF and stereo side by side.
+"""Accuracy of the maps against the simulated world's truth, TOF, stereo and fused side by side.
 
 For each seed, a real server on the default world (configs/world.toml with --world-seed) runs a full
-dem-full-tof panorama and a dem-full panorama; each product is scored from its own files only (the
-maps beside the truth/ grids, as anyone could score it without our code):
+dem-full-tof panorama and a dem-full panorama (and, with `--sensors ... fused`, a dem-full-fused one);
+each product is scored from its own files only (the maps beside the truth/ grids, as anyone could
+score it without our code):
 
 - DEM height error over observed cells: RMSE, 95th percentile of |error|, mean (bias);
 - share of the panorama's area observed: known cells within the sensor's reach of the rover;
@@ -12,6 +13,7 @@ maps beside the truth/ grids, as anyone could score it without our code):
 Also prints dem-full-tof's time per step and the server's peak memory.
 
     .venv/bin/python tests/bench/measure_maps.py [--seeds 1 2 3 4 5] [--sim-speed 100]
+        [--sensors tof stereo fused]
 """
 from __future__ import annotations
 
@@ -29,6 +31,8 @@ from maps_scoring import mean_line, peak_rss_mib, score_product, seed_line, timi
 import conftest  # noqa: E402
 from conftest import ServerProcess, pairs  # noqa: E402
 
+COMMANDS = {"tof": "dem-full-tof", "stereo": "dem-full", "fused": "dem-full-fused"}
+
 
 def run(client, line: str) -> dict[str, str]:
     reply = client.command(line, timeout=1800)
@@ -41,9 +45,10 @@ def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3, 4, 5])
     parser.add_argument("--sim-speed", type=float, default=100.0)
+    parser.add_argument("--sensors", nargs="+", choices=list(COMMANDS), default=["tof", "stereo"])
     args = parser.parse_args()
     conftest.SIM_SPEED = args.sim_speed
-    rows = {"tof": [], "stereo": []}
+    rows: dict[str, list] = {sensor: [] for sensor in args.sensors}
     with tempfile.TemporaryDirectory() as tmp:
         for seed in args.seeds:
             base = Path(tmp) / f"seed{seed}"
@@ -54,15 +59,16 @@ def main() -> None:
                                    extra_args=["--world-seed", str(seed)]).start()
             try:
                 with server.connect(timeout=900) as c:
-                    tof, stereo = (run(c, line) for line in ("dem-full-tof --output tof", "dem-full --output stereo"))
+                    replies = {sensor: run(c, f"{COMMANDS[sensor]} --output {sensor}") for sensor in args.sensors}
                 peak = peak_rss_mib(server.proc.pid)
             finally:
                 server.stop()
-            for sensor, reply in (("tof", tof), ("stereo", stereo)):
+            for sensor, reply in replies.items():
                 result = score_product(Path(reply["path"]), sensor)
                 rows[sensor].append(result)
-                print(seed_line(seed, sensor, result))
-            print(timing_line(seed, timings(Path(tof["path"])), peak))
+                print(seed_line(seed, sensor, result), flush=True)
+            if "tof" in replies:
+                print(timing_line(seed, timings(Path(replies["tof"]["path"])), peak), flush=True)
     for sensor, results in rows.items():
         print(mean_line(sensor, results))
 

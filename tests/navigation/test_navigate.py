@@ -270,3 +270,24 @@ def distance_to_polyline(points: np.ndarray, line: np.ndarray) -> np.ndarray:
         t = np.clip(((points - a) @ (b - a)) / max(float((b - a) @ (b - a)), 1e-12), 0.0, 1.0)
         best = np.minimum(best, np.linalg.norm(points - (a + t[:, None] * (b - a)), axis=1))
     return best
+
+
+def test_navigate_fused_arrives_on_one_map_of_both_sensors(server, world):
+    """--sensor fused: each cycle maps with the SR4000 and the stereo pair at the same views
+    (workflows/navigate-fused.yaml), the TOF's cloud aligned to the map and the stereo's following it."""
+    goal = open_goal(world, (4.0, 4.6))
+    with server.connect() as c:
+        c.send(f"@nav navigate --to {goal[0]},{goal[1]} --sensor fused --tolerance 0.3 --max-steps 3")
+        reply, _ = c.reply("nav", timeout=900)
+        plan = pairs(c.command("plan-path --to 0,0 --sensor fused", timeout=120))
+    assert " OK " in reply, reply
+    product = product_of(server, reply)
+    assert plan["map"].startswith(product.name + "/cycle-"), plan
+    traverse = json.loads((product / "traverse.json").read_text())
+    truth = json.loads((product / "truth" / "traverse.json").read_text())
+    assert traverse["outcome"] == "arrived" and truth["contacts"] == 0
+    assert np.linalg.norm(np.array(truth["path"][-1][:2]) - goal) < 0.45
+    assert all(c["alignment"]["accepted"] for c in traverse["cycles"][1:])
+    for cycle in traverse["cycles"]:      # both sensors in every cycle's map, the stereo bias measured
+        assert {"grid_tof", "aligned_stereo", "grid_stereo", "fused"} <= set(cycle["steps"]), cycle["steps"]
+        assert cycle["fusion"]["bias_measured"] and cycle["fusion"]["stereo_only"] > 0, cycle["fusion"]

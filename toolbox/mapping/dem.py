@@ -294,7 +294,7 @@ def mosaic(dems: Sequence[Dem], spec: GridSpec | None = None) -> Dem:
     The grids must share the cell size and be aligned to it (GridSpec.covering does that)."""
     if not dems:
         raise ValueError("no DEMs to merge")
-    spec = spec or _union_spec([dem.spec for dem in dems])
+    spec = spec or union_spec([dem.spec for dem in dems])
     heights = np.full(spec.shape, np.nan, dtype=np.float32)
     counts = np.zeros(spec.shape, dtype=np.int32)
     for dem in dems:
@@ -308,7 +308,8 @@ def mosaic(dems: Sequence[Dem], spec: GridSpec | None = None) -> Dem:
     return Dem(spec, heights, counts)
 
 
-def _union_spec(specs: Sequence[GridSpec]) -> GridSpec:
+def union_spec(specs: Sequence[GridSpec]) -> GridSpec:
+    """The grid covering several grids of one cell size (aligned to it, as GridSpec.covering makes them)."""
     cell = specs[0].cell
     x_low = min(s.x_range[0] for s in specs)
     y_low = min(s.y_range[0] for s in specs)
