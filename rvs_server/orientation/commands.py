@@ -76,7 +76,8 @@ def _advice(aim, settings: OrientSettings, sensor: str) -> str:
         return ""
     return (f" (no view the pan-tilt unit can take would see more than {100 * aim.share:.0f} % of the keyframe's "
             f"ground after this manoeuvre: orient after each turn of at most {settings.reach_turn_deg:g} deg and "
-            f"each {settings.reach_m:g} m driven)")
+            f"each {settings.reach_m:g} m driven, and before driving on after a turn of more than "
+            f"{settings.reach_drive_turn_deg:g} deg)")
 
 
 def _reply(outcome) -> dict[str, Any]:

@@ -128,7 +128,8 @@ class Odometer:
             key, motion, data = fallback
         odometry_s = time.perf_counter() - started
         carried = carry(key.belief, key.camera_to_rover, motion.key_from_new,
-                        motion.covariance * settings.covariance_scale, look.camera_to_rover)
+                        motion.covariance * settings.covariance_scale, look.camera_to_rover,
+                        heading_scale=settings.heading_sigma_scale.of(look.sensor))
         carried = PlanarBelief(_level(RoverPose.from_matrix(carried.rover_to_world), look.roll, look.pitch),
                                carried.covariance)
         belief, fix = self._fuse_sun(carried, look, settings)

@@ -23,9 +23,12 @@ class OrientSettings(Settings):
     wide_search_after_deg: float = Field(10.0, ge=0, description="stereo: after a turn this large since the last "
                                          "look, a look that fails is matched again in a window as wide as the wheels' "
                                          "heading can be off (wheels_deg ...)")
-    reach_turn_deg: float = Field(90.0, gt=0, le=180, description="the largest turn (in place, or with up to "
-                                  "reach_m forward) after which a pointed look is known to find the keyframe again; "
-                                  "a refusal past it advises looking at least this often")
+    reach_turn_deg: float = Field(90.0, gt=0, le=180, description="the largest turn in place after which a pointed "
+                                  "look is known to find the keyframe again; a refusal past any pointing advises "
+                                  "looking at least this often")
+    reach_drive_turn_deg: float = Field(45.0, gt=0, le=180, description="the largest turn that may be followed by up "
+                                        "to reach_m forward before the next look (past it the camera stands too far "
+                                        "round for the keyframe's ground to match, wherever it points)")
     reach_m: float = Field(1.5, gt=0, description="the longest drive after which a pointed look is known to find the "
                            "keyframe again")
     tof_frames: int = Field(1, ge=1, le=20, description="SR4000 frames averaged per look")
@@ -38,6 +41,11 @@ class OrientSettings(Settings):
     max_keyframe_deg: float = Field(25.0, gt=0, le=180, description="... or has turned this much from it")
     covariance_scale: float = Field(1.0, gt=0, description="the odometry's own covariance times this: what the "
                                     "campaign measured it to be over-confident by")
+    heading_sigma_scale: PerSensor[Positive] = Field(
+        PerSensor[Positive](stereo=2.5, tof=1.2), description="per sensor, the odometry's heading sigma of each "
+        "motion times this: the orient campaign (20 traverses per sensor, unsplit turns) found stereo's heading "
+        "errors 2.5 times and TOF's 1.2 times what the fit's covariance said (median |error| / sigma 1.69 and 0.80 "
+        "against a Gaussian's 0.67); believed, the sun's heading could not pull a stereo chain 0.25 deg off back")
     # How far dead reckoning may be off since the last look (about 5 sigma of the drive error):
     # a measured motion farther from it is refused as diverged.
     wheels_m: float = Field(0.05, ge=0, description="position: this much ...")

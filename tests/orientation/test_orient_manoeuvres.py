@@ -88,4 +88,5 @@ def test_beyond_what_pointing_can_recover_the_refusal_says_what_to_do(server_fac
         reply = c.command("orient --sensor tof", timeout=300)
         assert " ERR 400 " in reply and "orient failed:" in reply, reply
         assert "no view the pan-tilt unit can take would see more than" in reply
-        assert "orient after each turn of at most 90 deg and each 1.5 m driven" in reply
+        assert ("orient after each turn of at most 90 deg and each 1.5 m driven, and before driving on after a "
+                "turn of more than 45 deg") in reply

@@ -107,6 +107,21 @@ def test_stereo_points_of_a_plane_at_known_depth():
     np.testing.assert_allclose(project(points[found], rig.left), pixels[found], atol=0.05)
 
 
+def test_a_depth_prior_narrows_the_row_search_to_its_window():
+    """Near the prior the same depths are found; a prior twice as far searches where the match is not."""
+    rig, image = ideal_rig(), texture(3)
+    pixels, _ = F.bucketed_features(image, 300, (4, 4))
+    right = shifted(image, -25.0)                               # 5 m
+    unguided = S.stereo_points(pixels, image, right, rig, PARAMS)
+    near = np.where(np.isfinite(unguided), unguided * 1.1, np.nan)
+    guided = S.stereo_points(pixels, image, right, rig, PARAMS, expected=near)
+    both = np.isfinite(unguided).all(axis=1) & np.isfinite(guided).all(axis=1)
+    assert both.sum() >= 0.95 * np.isfinite(unguided).all(axis=1).sum()
+    np.testing.assert_allclose(guided[both], unguided[both], atol=1e-9)
+    far = S.stereo_points(pixels, image, right, rig, PARAMS, expected=unguided * 2.0)
+    assert not np.isfinite(far).any()
+
+
 def test_row_search_refuses_a_textureless_right_image():
     rig, image = ideal_rig(), texture(4)
     pixels, _ = F.bucketed_features(image, 200, (4, 4))

@@ -63,9 +63,11 @@ def _compose(key_rover: np.ndarray, key_camera_to_rover: np.ndarray, key_from_ne
 
 
 def carry(key: PlanarBelief, key_camera_to_rover: np.ndarray, key_from_new: np.ndarray, motion_covariance: np.ndarray,
-          new_camera_to_rover: np.ndarray, step: float = 1e-6) -> PlanarBelief:
+          new_camera_to_rover: np.ndarray, step: float = 1e-6, heading_scale: float = 1.0) -> PlanarBelief:
     """The rover's belief at the new look: the keyframe's belief carried through the camera's motion
-    key_from_new (covariance 6 x 6, right perturbation, toolbox/odometry/estimate.py)."""
+    key_from_new (covariance 6 x 6, right perturbation, toolbox/odometry/estimate.py). The motion's
+    share of the heading sigma is multiplied by `heading_scale` (what a campaign found it short by:
+    the fit's covariance knows the image noise, not the calibration's errors)."""
     new = _compose(key.rover_to_world, key_camera_to_rover, key_from_new, new_camera_to_rover)
     centre = planar(new)
     base = planar(key.rover_to_world)
@@ -81,7 +83,8 @@ def carry(key: PlanarBelief, key_camera_to_rover: np.ndarray, key_from_new: np.n
     j_motion = np.column_stack([difference(_compose(key.rover_to_world, key_camera_to_rover,
                                                     key_from_new @ exp_se3(step * e), new_camera_to_rover))
                                 for e in np.eye(6)])
-    covariance = j_key @ key.covariance @ j_key.T + j_motion @ motion_covariance @ j_motion.T
+    scale = np.diag([1.0, 1.0, heading_scale])
+    covariance = j_key @ key.covariance @ j_key.T + scale @ j_motion @ motion_covariance @ j_motion.T @ scale
     return PlanarBelief(new, 0.5 * (covariance + covariance.T))
 
 

@@ -84,6 +84,9 @@ class StereoOdometryParams(BaseModel):
     stereo_patch: int = Field(11, ge=5, description="patch side (px, odd) correlated along the right image's row")
     stereo_min_correlation: float = Field(0.8, gt=0, le=1, description="weakest normalised correlation accepted")
     stereo_margin: float = Field(0.05, ge=0, description="best correlation above any other disparity's by this")
+    prior_depth_share: float = Field(0.25, gt=0, lt=1, description="a tracked point's depth searched within this "
+                                     "share of where the coarse motion puts its keyframe point")
+    prior_disparity_px: float = Field(3.0, ge=0, description="and this many pixels of disparity either side")
     track_window: int = Field(15, ge=5, description="patch side (px) fitted when tracking keyframe points")
     track_shift_px: float = Field(8.0, gt=0, description="farthest a track may end from the coarse prediction")
     disparity_offset: bool = Field(True, description="fit the rig's disparity offset (its yaw error) with the pose")
@@ -183,7 +186,8 @@ def stereo_motion(key: StereoKeyframe, left: np.ndarray, right: np.ndarray, rig:
     tracking = params if descriptors_failed is None else params.model_copy(
         update={"track_shift_px": params.search_radius_px})
     index, pixels_new = guided_tracks(key, left, coarse, tracking, homography, view.image)
-    points_new = stereo_points(pixels_new, left, right, rig, params)
+    points_new = stereo_points(pixels_new, left, right, rig, params,
+                               expected=apply_inverse(coarse, key.points[index]))
     key_from_new, inliers = pnp_ransac(key.points[index], pixels_new, key.camera, params,
                                        params.ransac_threshold_px)
     if inliers.sum() < params.min_inliers:
@@ -297,49 +301,75 @@ def rectified_pixels(pixels: np.ndarray, camera: Intrinsics, rotation: np.ndarra
 
 
 def stereo_points(pixels: np.ndarray, left: np.ndarray, right: np.ndarray, rig: StereoRig,
-                  params: StereoOdometryParams) -> np.ndarray:
+                  params: StereoOdometryParams, expected: np.ndarray | None = None) -> np.ndarray:
     """3D points (N, 3) in the left camera frame of left-image pixels, NaN where the right image
-    holds no clear match on the same rectified row within the depth range."""
+    holds no clear match on the same rectified row within the depth range.
+
+    `expected` (N, 3), the points' left-camera positions as a prior already places them (NaN: no
+    prior), narrows each one's search to the disparities of depths within `prior_depth_share` of
+    its prior's: the whole depth range is some 400 px of row, the prior's window a few tens."""
     rect = rectifying(rig)
     left_rect = cv2.remap(left, *rect.left_maps, cv2.INTER_LINEAR)
     right_rect = cv2.remap(right, *rect.right_maps, cv2.INTER_LINEAR)
     at = rectified_pixels(pixels, rig.left, rect.r1, rect.p1)
-    disparity = row_search(left_rect, right_rect, at, rect.disparity_range(params), params)
+    low, high = rect.disparity_range(params)
+    windows = np.tile([low, high], (len(at), 1))
+    if expected is not None:
+        windows = prior_windows(np.asarray(expected, np.float64) @ rect.r1.T, rect, params, windows)
+    disparity = row_search(left_rect, right_rect, at, windows, params)
     points = np.full((len(pixels), 3), np.nan)
     found = np.isfinite(disparity)
     points[found] = triangulate_rectified(at[found], disparity[found], rect.p1, rect.baseline) @ rect.r1
     return points
 
 
-def row_search(left_rect: np.ndarray, right_rect: np.ndarray, at: np.ndarray, disparities: tuple[float, float],
+def prior_windows(expected_rect: np.ndarray, rect: Rectified, params: StereoOdometryParams,
+                  windows: np.ndarray) -> np.ndarray:
+    """The (N, 2) disparity windows narrowed around the disparity of each prior point's depth (in
+    the rectified frame), by the prior's relative depth error and a few pixels; rows without a
+    usable prior keep their window."""
+    depth = expected_rect[:, 2]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        usable = np.isfinite(depth) & (depth > 0)
+        fb = rect.p1[0, 0] * rect.baseline
+        share = params.prior_depth_share
+        near = fb / (depth * (1.0 - share)) + params.prior_disparity_px
+        far = fb / (depth * (1.0 + share)) - params.prior_disparity_px
+    out = windows.copy()
+    out[usable, 0] = np.maximum(windows[usable, 0], far[usable])
+    out[usable, 1] = np.minimum(windows[usable, 1], near[usable])
+    return out
+
+
+def row_search(left_rect: np.ndarray, right_rect: np.ndarray, at: np.ndarray, windows: np.ndarray,
                params: StereoOdometryParams) -> np.ndarray:
     """Disparity (N,) of rectified left pixels in the rectified right image, NaN where none is clear.
 
     Each left patch is correlated along its row (one row either side: a calibration is never
-    exact, and its rows may be a pixel off) over the disparity range; the best correlation must
-    be high and clearly above the best elsewhere on the row, and the Lucas-Kanade fit of the patch
-    at it gives the sub-pixel disparity."""
+    exact, and its rows may be a pixel off) over its disparity window (N, 2: lowest, highest); the
+    best correlation must be high and clearly above the best elsewhere in the window, and the
+    Lucas-Kanade fit of the patch at it gives the sub-pixel disparity."""
     half = params.stereo_patch // 2
     height, width = left_rect.shape
-    low, high = int(np.floor(disparities[0])), int(np.ceil(disparities[1]))
     disparity = np.full(len(at), np.nan)
     start = np.full((len(at), 2), np.nan, np.float32)
     for i, (u, v) in enumerate(at):
         row = int(round(v))
         if not (half + 1 <= row < height - half - 1 and half <= u < width - half):
             continue
-        template = cv2.getRectSubPix(left_rect, (params.stereo_patch, params.stereo_patch), (float(u), float(v)))
+        low, high = int(np.floor(windows[i, 0])), int(np.ceil(windows[i, 1]))
         first, last = max(0, int(u) - high - half), min(width, int(u) - low + half + 2)
         if last - first < params.stereo_patch + 2:
             continue
+        template = cv2.getRectSubPix(left_rect, (params.stereo_patch, params.stereo_patch), (float(u), float(v)))
         strip = right_rect[row - half - 1: row + half + 2, first:last]
         scores = cv2.matchTemplate(strip, template, cv2.TM_CCOEFF_NORMED)
-        best_row, best_column = np.unravel_index(int(np.argmax(scores)), scores.shape)
-        best = scores[best_row, best_column]
-        column_scores = scores.max(axis=0)
-        away = np.abs(np.arange(len(column_scores)) - best_column) > 2
-        rival = column_scores[away].max() if away.any() else -1.0
-        if best < params.stereo_min_correlation or rival > best - params.stereo_margin:
+        _, best, _, (best_column, best_row) = cv2.minMaxLoc(scores)
+        if best < params.stereo_min_correlation:
+            continue
+        scores[:, max(0, best_column - 2): best_column + 3] = -1.0   # the rival: the best elsewhere on the row
+        rival = cv2.minMaxLoc(scores)[1]
+        if rival > best - params.stereo_margin:
             continue
         start[i] = (first + best_column + half + (u - int(u)), row - 1 + best_row + (v - row))
     wanted = np.isfinite(start).all(axis=1)
@@ -349,7 +379,7 @@ def row_search(left_rect: np.ndarray, right_rect: np.ndarray, at: np.ndarray, di
                                    window=params.stereo_patch, max_shift=1.5)
     d = at[wanted, 0] - refined[:, 0]
     ok &= ((np.abs(at[wanted, 1] - refined[:, 1]) <= params.stereo_row_px)
-           & (d >= disparities[0]) & (d <= disparities[1]))
+           & (d >= windows[wanted, 0]) & (d <= windows[wanted, 1]))
     disparity[np.flatnonzero(wanted)[ok]] = d[ok]
     return disparity
 
@@ -379,9 +409,12 @@ def predicted_window(key: StereoKeyframe, new_pixels: np.ndarray, guess: np.ndar
     predicted = predicted_pixels(key, guess)
     if homography is not None:
         predicted = apply_homography(np.linalg.inv(homography), predicted)
-    distance = np.linalg.norm(predicted[:, None, :] - new_pixels[None, :, :], axis=2)
+    # Squared distances in float32, a component at a time: a norm over (N, M, 2) costs ten times more.
+    predicted, new_pixels = predicted.astype(np.float32), np.asarray(new_pixels, np.float32)
+    du = predicted[:, 0, None] - new_pixels[None, :, 0]
+    dv = predicted[:, 1, None] - new_pixels[None, :, 1]
     with np.errstate(invalid="ignore"):
-        return distance <= radius
+        return du * du + dv * dv <= np.float32(radius * radius)
 
 
 def descriptor_matches(key: StereoKeyframe, new: StereoKeyframe, params: StereoOdometryParams,
@@ -468,7 +501,9 @@ def gauss_newton(key_from_new: np.ndarray, residuals: Callable[[np.ndarray, np.n
     for _ in range(iterations):
         r = at(np.zeros(6 + extra))
         jacobian = np.stack([(at(e) - at(-e)) / (2 * h) for e, h in zip(np.diag(steps), steps, strict=True)], axis=1)
-        delta = np.linalg.lstsq(jacobian, -r, rcond=None)[0]
+        # The normal equations (6 + extra square): an SVD of the tall Jacobian costs 20 times more,
+        # most of it OpenBLAS waking its threads for a problem this small.
+        delta = np.linalg.lstsq(jacobian.T @ jacobian, -(jacobian.T @ r), rcond=None)[0]
         pose, x = pose @ exp_se3(delta[:6]), x + delta[6:]
         if np.linalg.norm(delta[:6]) < 1e-9:
             break
