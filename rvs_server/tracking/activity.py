@@ -25,7 +25,6 @@ import numpy as np
 from rvs_server.activities import Activity
 from toolbox.tracking.detect import Candidate, candidates
 from toolbox.tracking.kalman import Track
-from toolbox.tracking.person import PersonModel
 from toolbox.tracking.standing import Plane
 
 from .record import TrackRecord, write_track
@@ -57,6 +56,7 @@ class Target:
     sensor: str
     sim_s: float
     product: str
+    range_m: float = math.inf    # from the PTU when the search saw it
 
 
 class TrackActivity(Activity):
@@ -67,7 +67,7 @@ class TrackActivity(Activity):
         super().__init__(server, rate_hz)
         self.settings, self.sensor, self.product = settings, sensor, product
         self.sight = Sight(server, settings, sensor)
-        self.model = PersonModel()
+        self.model = settings.person(sensor)
         # The track is born where and when the search saw the target, its speed unknown up to a
         # walker's: by the first frame its gate has grown by all the search's time since. Until it
         # first takes a measurement it wants a person as sure as a lost track does.
@@ -77,10 +77,13 @@ class TrackActivity(Activity):
         self.track.seen_s = max(target.sim_s, server.clock.now())   # coasting counts from the start
         self.locked = False
         self.ground_z = target.z
-        # The search's height seeds the person's height only where it is a whole grown person's: a
-        # search at range may have had the head above its view (a 1.44 m "person" 1.80 m tall made
-        # every later frame's ground 0.35 m high, the feet's ground taken for hidden).
-        self._heights: list[float] = [target.height] if self.model.height(target.height) >= 1.0 else []
+        # The search's height seeds the person's height only where it is a whole grown person's seen
+        # near, as a frame's is learnt: a search at range may have had the head above its view (a
+        # 1.44 m "person" 1.80 m tall made every later frame's ground 0.35 m high, the feet's ground
+        # taken for hidden), and a stereo search at 7.6 m read the ground 0.22 m high (1.53 m tall).
+        whole = self.model.height(target.height) >= 1.0 and target.range_m <= NEAR_GROUND_M
+        self._heights: list[float] = [target.height] if whole else []
+        self._last_xy: np.ndarray | None = None   # where the target was last measured
         self.lost = False
         self._lost_s = -math.inf                  # when it was lost (simulation seconds)
         self._sweep_to: float | None = None       # lost: the pan end the PTU sweeps to
@@ -102,9 +105,11 @@ class TrackActivity(Activity):
                 return self.unknown(seq, f"a job holds the {busy}")
             grabbed = self.sight.grab(devices)
         seen = self.sight.seen(grabbed)
-        found = candidates(seen.points, seen.sensor_xy, self._fallback_plane(seen), self.settings.standing(),
+        found = candidates(seen.points, seen.sensor_xy, self._fallback_plane(seen), self.settings.standing(self.sensor),
                            self.model)
         chosen = self._follow(seen, found)
+        if chosen is not None:
+            self._last_xy = chosen.xy
         command = self._steer(devices, seen)
         record = self._record(seq, seen, chosen, len(found), command)
         if found:
@@ -133,6 +138,12 @@ class TrackActivity(Activity):
                 track.update(chosen.xy, self._measurement_cov(seen, chosen))
                 self._ground(chosen, seen)
                 return chosen
+            chosen = self._within_reach(seen, found)
+            if chosen is not None:   # it turned back where the prediction went on: one target, taken up there
+                self.track = Track.start(chosen.xy, self._measurement_cov(seen, chosen), seen.sim_s, settings.track(),
+                                         speed_sigma=settings.walk_speed_m_s / 2)
+                self._ground(chosen, seen)
+                return chosen
             if track.lost or self._beyond_range(seen):
                 self._lose(seen)
             return None
@@ -159,6 +170,18 @@ class TrackActivity(Activity):
         self.lost, self._sweep_to, self.locked = False, None, True
         self._ground(chosen, seen)
         return chosen
+
+    def _within_reach(self, seen: Seen, found: list[Candidate]) -> Candidate | None:
+        """Outside the gate, a clearly person-like candidate no farther from where the target was last
+        measured than a walker gets since (plus a body): a walker who stopped or turned back where the
+        constant-velocity prediction went on (at 5 Hz a reversal at 1.2 m/s left it 0.7-1.0 m outside
+        a gate the filter had grown sure of, and the track coasted off: stereo seed 415)."""
+        if self._last_xy is None:
+            return None
+        reach = self.settings.walk_speed_m_s * max(0.0, seen.sim_s - self.track.seen_s) + CONFIRM_M
+        near = [c for c in found if c.confidence >= self.settings.reacquire_confidence
+                and float(np.linalg.norm(c.xy - self._last_xy)) <= reach and not self.sight.cut_by_view(seen, c.points)]
+        return min(near, key=lambda c: float(np.linalg.norm(c.xy - self._last_xy)), default=None)
 
     def _nearest_in_gate(self, seen: Seen, found: list[Candidate]) -> Candidate | None:
         chosen, best = None, math.inf
@@ -274,7 +297,9 @@ class TrackActivity(Activity):
         return TrackRecord(seq, seen.sim_s, state, chosen is not None, float(x), float(y),
                            self.ground_z, float(vx), float(vy), sigma, range_m, bearing,
                            chosen.confidence if chosen is not None else math.nan, seen.pan_deg, seen.tilt_deg,
-                           command, seen.grab_ms, seen.process_ms, count, truth=seen.truth)
+                           command, seen.grab_ms, seen.process_ms, count, truth=seen.truth,
+                           measured=None if chosen is None else (chosen.shape.x, chosen.shape.y,
+                                                                 chosen.shape.ground_z, chosen.shape.height))
 
     def unknown(self, seq: int, reason: str) -> dict[str, Any]:
         record = TrackRecord(seq, self.server.clock.now(), "unknown", False, math.nan, math.nan, math.nan, math.nan,

@@ -14,7 +14,7 @@ from rvs_server.dispatch import Call, Module
 from rvs_server.protocol import BadRequest, Sleeping, WrongMode
 
 from .activity import Target, TrackActivity
-from .record import write_candidates, write_search_picture
+from .record import write_candidates, write_search_picture, write_views
 from .search import sweep
 from .settings import Sensor, TrackingSettings
 from .sight import Sight
@@ -65,6 +65,7 @@ def track3d_detect(ctx: JobContext, cfg: DetectConfig) -> dict[str, Any]:
     truth = search.views[-1].truth if search.views else None
     ctx.save_truth(product)
     write_candidates(product, search.judged)
+    write_views(product, search.views)
     write_search_picture(product, search.points, search.sensor_xy, search.judged, settings.max_range_m + 0.5, truth)
     people = search.people
     product.note("summary", {"sensor": sensor, "views": len(search.views), "points": int(len(search.points)),
@@ -78,7 +79,7 @@ def track3d_detect(ctx: JobContext, cfg: DetectConfig) -> dict[str, Any]:
     shape = nearest.candidate.shape
     done = ctx.finish_product(product)
     state.target = Target(shape.x, shape.y, shape.ground_z, shape.height, nearest.candidate.confidence, sensor,
-                          nearest.seen_s, done["product"])
+                          nearest.seen_s, done["product"], nearest.range_m)
     return {"found": len(people), "x": f"{shape.x:.3f}", "y": f"{shape.y:.3f}", "z": f"{shape.ground_z:.3f}",
             "range": f"{nearest.range_m:.2f}", "bearing": f"{nearest.bearing_deg:.1f}", "height": f"{shape.height:.2f}",
             "confidence": f"{nearest.candidate.confidence:.2f}", **done}

@@ -12,7 +12,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from rvs_server.files import write_text_atomic
+from rvs_server.files import save_npz_atomic, write_text_atomic
 from rvs_server.products.canvas import Canvas, side_by_side
 from rvs_server.products.rasters import write_png
 from toolbox.colour import colourise, with_key, with_title
@@ -66,6 +66,21 @@ def write_candidates(product: Any, judged: list[Judged]) -> None:
                                   "first: its centre (x, y, ground z, world), range and bearing (degrees, positive "
                                   "right) from the PTU, shape, confidence and the memberships it is made of"),
                       _csv(header, rows))
+
+
+def write_views(product: Any, views: Sequence[Any]) -> None:
+    """The search's views as it judged them, so that a search is judged again offline (a changed
+    detector on the same clouds): per view its world points, the sensor's place, the rover's plane."""
+    arrays: dict[str, np.ndarray] = {}
+    for index, view in enumerate(views):
+        plane = view.plane
+        arrays[f"points_{index}"] = view.points.astype(np.float32)
+        arrays[f"sensor_{index}"] = np.array([*view.sensor_xy, view.sensor_z, view.pan_deg, view.tilt_deg,
+                                              view.sim_s])
+        arrays[f"plane_{index}"] = np.array([plane.x0, plane.y0, plane.z0, plane.gx, plane.gy])
+    save_npz_atomic(product.add("views.npz", "each view of the search: points_K (N, 3 world, metres), sensor_K "
+                                "(x, y, z of the sensor, pan and tilt in degrees, simulation seconds), plane_K (the "
+                                "rover's ground plane: x0, y0, z0, gx, gy)"), arrays, compressed=True)
 
 
 def _ground_canvas(points: np.ndarray, around: np.ndarray, reach: float) -> tuple[Canvas, np.ndarray]:
@@ -157,6 +172,7 @@ class TrackRecord:
     reason: str = ""
     truth: dict | None = None
     best: str = ""                   # the most person-like cluster: confidence @ metres from the prediction
+    measured: tuple[float, float, float, float] | None = None   # the frame's measurement: x, y, ground z, height
 
     def event(self) -> dict[str, Any]:
         if self.state == "unknown":
@@ -169,13 +185,15 @@ class TrackRecord:
         t = self.truth or {}
         return [self.seq, f"{self.sim_s:.3f}", self.state, int(self.seen), _f(self.x), _f(self.y), _f(self.z),
                 _f(self.vx), _f(self.vy), _f(self.sigma_m), _f(self.range_m), _f(self.bearing_deg, 2),
-                _f(self.confidence), _f(self.pan_deg, 2), _f(self.tilt_deg, 2), self.ptu_command,
+                _f(self.confidence), *(_f(v) for v in (self.measured or (math.nan,) * 4)),
+                _f(self.pan_deg, 2), _f(self.tilt_deg, 2), self.ptu_command,
                 _f(self.grab_ms, 1), _f(self.process_ms, 1), self.candidates, self.best, self.reason,
                 _f(t.get("x")), _f(t.get("y")), _f(t.get("z")), _f(t.get("visible"), 3)]
 
 
 TRACK_HEADER = ["seq", "sim_s", "state", "seen", "x", "y", "z", "vx", "vy", "sigma_m", "range_m", "bearing_deg",
-                "confidence", "pan_deg", "tilt_deg", "ptu_command", "grab_ms", "process_ms", "candidates",
+                "confidence", "measured_x", "measured_y", "measured_z", "measured_height_m",
+                "pan_deg", "tilt_deg", "ptu_command", "grab_ms", "process_ms", "candidates",
                 "best_candidate", "reason",
                 "true_x", "true_y", "true_z", "true_visible"]
 
@@ -184,9 +202,10 @@ def write_track(product: Any, records: list[TrackRecord], points: np.ndarray, se
                 summary: dict[str, Any]) -> None:
     write_text_atomic(product.add("track.csv", "every frame: state (tracking, lost, unknown), seen (1: measured, "
                                   "0: coasting on the prediction), the filter's position (x, y; z the ground under "
-                                  "it; world), velocity, 1-sigma, range and bearing from the PTU, the PTU's angles "
-                                  "and command, wall milliseconds; simulated, the astronaut's true place and the "
-                                  "share of it in view"),
+                                  "it; world), velocity, 1-sigma, range and bearing from the PTU, the frame's own "
+                                  "measurement where it took one (x, y, the ground under it, the person's height), "
+                                  "the PTU's angles and command, wall milliseconds; simulated, the astronaut's "
+                                  "true place and the share of it in view"),
                       _csv(TRACK_HEADER, [r.row() for r in records]))
     placed = [r for r in records if r.state != "unknown" and math.isfinite(r.x)]
     truth = np.array([[r.truth["x"], r.truth["y"]] for r in records if r.truth])
@@ -214,4 +233,4 @@ def write_track(product: Any, records: list[TrackRecord], points: np.ndarray, se
               with_title(picture, title))
 
 
-__all__ = ["Judged", "TrackRecord", "write_candidates", "write_search_picture", "write_track"]
+__all__ = ["Judged", "TrackRecord", "write_candidates", "write_search_picture", "write_track", "write_views"]

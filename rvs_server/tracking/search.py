@@ -11,7 +11,6 @@ import numpy as np
 
 from rvs_server.devices.frame_points import SENSOR_DEVICE
 from toolbox.tracking.detect import candidates
-from toolbox.tracking.person import PersonModel
 
 from .record import Judged
 from .settings import TrackingSettings
@@ -76,8 +75,9 @@ def judge(views: list[Seen], sight: Sight, settings: TrackingSettings) -> Search
     of one thing made one."""
     judged = []
     pose = views[0].pose if views else None
+    params, model = settings.standing(sight.sensor), settings.person(sight.sensor)
     for view in views:
-        for candidate in candidates(view.points, view.sensor_xy, view.plane, settings.standing(), PersonModel()):
+        for candidate in candidates(view.points, view.sensor_xy, view.plane, params, model):
             bearing, range_m = sight.bearing_range(pose, candidate.xy)
             judged.append(Judged(candidate, range_m, bearing, candidate.confidence >= settings.found_confidence,
                                  seen_s=view.sim_s))

@@ -7,6 +7,7 @@ from pydantic import Field
 
 from rvs_server.config import PerSensor, Range, Settings
 from toolbox.tracking.kalman import TrackParams
+from toolbox.tracking.person import PersonModel, Trapezoid
 from toolbox.tracking.standing import StandingParams
 
 Sensor = Literal["tof", "stereo"]
@@ -45,6 +46,18 @@ class TrackingSettings(Settings):
     tof_sigma_m: float = Field(0.04, gt=0, description="1 sigma of one TOF frame's centre, per axis")
     stereo_sigma_m: float = Field(0.04, gt=0, description="1 sigma of one stereo frame's centre at 1 m ...")
     stereo_sigma_per_m2: float = Field(0.003, ge=0, description="... plus this times the range squared")
+    stereo_ground_noise_per_m2: float = Field(0.0025, ge=0, description="1 sigma of a stereo ground point's "
+                                              "height per squared metre of range (4 x 4 binned: 0.14 m at 7.5 m; "
+                                              "the ground is then found from medians and a point stands once "
+                                              "clear of 4 sigma: toolbox/tracking/standing.py)")
+    stereo_min_cell_points: int = Field(5, ge=1, description="stereo: a 10 cm cell with fewer standing points "
+                                        "is the matcher's strays, not a body")
+    stereo_legs_to_torso: Range = Field((0.92, 1.02), description="stereo: a person's legs band is at most the "
+                                        "first share of its torso band's width wholly, none past the second (the "
+                                        "pair widens thin legs and loses the arms beside the torso beyond 6 m; "
+                                        "in 20 scenes' search views walkers read 0.55-1.05, most under 0.9, and "
+                                        "boulders of person height 0.99-1.50, all but one over 1.02; the "
+                                        "SR4000's model keeps 0.85-1.0)")
     # -- following ----------------------------------------------------------------------------
     track_confidence: float = Field(0.3, ge=0, le=1, description="a cluster in the gate this person-like is the "
                                     "target (lower than found_confidence: a rock may hide its legs)")
@@ -66,8 +79,16 @@ class TrackingSettings(Settings):
     lost_sweep_speed_deg_s: float = Field(30.0, gt=0, le=300, description="the lost sweep's pan speed (a TOF "
                                           "frame at 10 Hz then spans 3 degrees, well inside its 37-degree view)")
 
-    def standing(self) -> StandingParams:
-        return StandingParams()
+    def standing(self, sensor: str) -> StandingParams:
+        if sensor == "tof":
+            return StandingParams()
+        return StandingParams(noise_per_m2=self.stereo_ground_noise_per_m2, min_cell_points=self.stereo_min_cell_points)
+
+    def person(self, sensor: str) -> PersonModel:
+        if sensor == "tof":
+            return PersonModel()
+        high, zero = self.stereo_legs_to_torso
+        return PersonModel(legs_to_torso=Trapezoid(0.0, 0.0, high, zero))
 
     def track(self) -> TrackParams:
         return TrackParams(q=self.acceleration_density, max_coast_s=self.max_coast_s, min_gate_m=self.min_gate_m)

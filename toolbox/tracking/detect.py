@@ -30,7 +30,7 @@ def candidates(points: np.ndarray, sensor_xy: np.ndarray, plane: Plane,
     """Every standing cluster of a world cloud (N, 3), most person-like first."""
     if len(points) < params.min_points:
         return []
-    ground = ground_of(points, plane, params)
+    ground = ground_of(points, plane, params, sensor_xy=sensor_xy)
     found = []
     for cluster in standing_clusters(points, ground, params, sensor_xy):
         shape = shape_of(cluster, sensor_xy, model)

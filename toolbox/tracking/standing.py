@@ -19,6 +19,13 @@
    is measured well, it is kept where the feet agree with it (the column's lowest points there are
    the sensor's noise tail, 2-5 cm low) or are hidden (a rock before them: the column then starts
    well above the ring).
+
+A noisy sensor (a stereo pair: a ground point's height spreads by about 0.0025 r^2 at range r, 0.14 m
+at 7.5 m, with its median within 2 cm of the truth) is told so by `noise_per_m2`. Then the ground
+cell is the median of its points, not the lowest (the lowest of a spread sits 2-3 deviations low), a
+cell's spread and step may be as large as the noise makes them, a point stands only once it is
+clear of the noise (4 deviations: its tail is heavy), and the ground under a cluster is the ring's fit (the feet's
+lowest points are the noise's tail), the feet serving only to tell that they are hidden.
 """
 from __future__ import annotations
 
@@ -45,6 +52,8 @@ class StandingParams:
     plane_slope: float = 0.15         # ... plus this per metre away (the terrain bends)
     min_above: float = 0.25      # m: a point this far above the ground stands on it
     cell: float = 0.1            # m: the clusters' occupancy grid
+    min_cell_points: int = 1     # a cell with fewer standing points is not occupied (a noisy sensor's stray
+                                 # ground returns above `min_above` are single points; a body fills its cells)
     join_cells: int = 1          # occupied cells this close are one cluster
     min_points: int = 25
     ring: tuple[float, float] = (0.15, 1.0)   # m: the ground ring round a cluster's outline (step 4)
@@ -54,6 +63,17 @@ class StandingParams:
     ring_trusted_m: float = 6.0  # m: within this range of the sensor the ring's ground is measured well
     feet_agree_m: float = 0.05   # m: feet this near the trusted ring agree with it (the ring is kept)
     feet_hidden_m: float = 0.1   # m: a column whose lowest points stand this far above the ring is hidden
+    noise_per_m2: float = 0.0    # 1 sigma of a ground point's height per squared metre of range (0: the
+                                 # sensor's noise is small beside the thresholds above, as the SR4000's)
+    stand_sigmas: float = 4.0    # a noisy sensor's point stands once this many sigmas above the ground
+
+    def noise_at(self, range_m: np.ndarray | float) -> np.ndarray:
+        """1 sigma of a ground point's height at `range_m` from the sensor."""
+        return self.noise_per_m2 * np.square(range_m)
+
+    def min_above_at(self, range_m: np.ndarray | float) -> np.ndarray:
+        """How far above the ground a point at `range_m` stands: `min_above`, or clear of the noise."""
+        return np.maximum(self.min_above, self.stand_sigmas * self.noise_at(range_m))
 
 
 @dataclass(frozen=True)
@@ -112,8 +132,9 @@ class Cluster:
 
 
 def ground_of(points: np.ndarray, plane: Plane, params: StandingParams = StandingParams(),
-              margin: float = 1.0) -> Ground:
-    """The ground under a cloud (N, 3, world): see the module's step 1."""
+              margin: float = 1.0, sensor_xy: np.ndarray | None = None) -> Ground:
+    """The ground under a cloud (N, 3, world) seen from `sensor_xy` (by default the plane's origin):
+    see the module's step 1."""
     spec = GridSpec.covering((points[:, 0].min() - margin, points[:, 0].max() + margin),
                              (points[:, 1].min() - margin, points[:, 1].max() + margin), params.ground_cell)
     row, col, _ = spec.cell_of(points[:, 0], points[:, 1])
@@ -121,10 +142,14 @@ def ground_of(points: np.ndarray, plane: Plane, params: StandingParams = Standin
     highest = np.full(spec.shape, -np.inf)
     np.minimum.at(lowest, (row, col), points[:, 2])
     np.maximum.at(highest, (row, col), points[:, 2])
+    noise = _cell_noise(spec, plane, params, sensor_xy)
+    spread = highest - lowest
+    if params.noise_per_m2 > 0:   # a noisy sensor: the cell's median is its ground, the lowest its noise
+        lowest = np.where(np.isfinite(lowest), _cell_medians(row, col, points[:, 2], spec.shape), np.inf)
     # A cell whose points stand tall is a body's side, not ground: without this, a person whose feet
     # are below the view would be its own ground.
-    lowest[highest - lowest > params.max_ground_spread] = np.inf
-    lowest[~_ground_patches(lowest, plane, spec, params)] = np.inf
+    lowest[spread > params.max_ground_spread + np.minimum(6.0 * noise, 0.6)] = np.inf
+    lowest[~_ground_patches(lowest, plane, spec, params, noise)] = np.inf
     size = max(1, int(round(params.ground_window / params.ground_cell)) | 1)
     eroded = ndimage.minimum_filter(lowest, size=size, mode="constant", cval=np.inf)
     opened = ndimage.maximum_filter(np.where(np.isfinite(eroded), eroded, -np.inf), size=size,
@@ -141,12 +166,36 @@ def ground_of(points: np.ndarray, plane: Plane, params: StandingParams = Standin
     return Ground(spec, heights, seen)
 
 
-def _ground_patches(lowest: np.ndarray, plane: Plane, spec: GridSpec, params: StandingParams) -> np.ndarray:
+def _cell_noise(spec: GridSpec, plane: Plane, params: StandingParams, sensor_xy: np.ndarray | None) -> np.ndarray:
+    """1 sigma of a ground point's height in each cell (zeros for a sensor without `noise_per_m2`)."""
+    if params.noise_per_m2 <= 0:
+        return np.zeros(spec.shape)
+    x0, y0 = (plane.x0, plane.y0) if sensor_xy is None else (float(sensor_xy[0]), float(sensor_xy[1]))
+    xs, ys = spec.centres()
+    return params.noise_at(np.hypot(xs[None, :] - x0, ys[:, None] - y0))
+
+
+def _cell_medians(row: np.ndarray, col: np.ndarray, z: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """The median height of each cell's points (NaN where it has none)."""
+    flat = row.astype(np.int64) * shape[1] + col
+    order = np.lexsort((z, flat))
+    flat, z = flat[order], z[order]
+    starts = np.flatnonzero(np.r_[True, flat[1:] != flat[:-1]])
+    counts = np.diff(np.r_[starts, len(flat)])
+    lower, upper = starts + (counts - 1) // 2, starts + counts // 2
+    medians = np.full(shape[0] * shape[1], np.nan)
+    medians[flat[starts]] = (z[lower] + z[upper]) / 2
+    return medians.reshape(shape)
+
+
+def _ground_patches(lowest: np.ndarray, plane: Plane, spec: GridSpec, params: StandingParams,
+                    noise: np.ndarray | None = None) -> np.ndarray:
     """The cells that belong to ground: patches of neighbouring cells whose heights change as ground
     can (by at most `max_ground_step` from cell to cell), at least `min_ground_cells` large, lying
     where the rover's own plane says ground may lie. Flying pixels behind a silhouette and the flat
     tops of shoulders make small patches high above their surroundings; they are dropped."""
     seen = np.isfinite(lowest)
+    noise = np.zeros(lowest.shape) if noise is None else noise
     index = np.full(lowest.shape, -1, dtype=np.int64)
     index[seen] = np.arange(int(seen.sum()))
     rows, cols = lowest.shape
@@ -156,7 +205,8 @@ def _ground_patches(lowest: np.ndarray, plane: Plane, spec: GridSpec, params: St
         b = (slice(dr, rows), slice(max(0, dc), cols - max(0, -dc) if dc < 0 else cols))
         with np.errstate(invalid="ignore"):   # inf - inf where neither is seen: not an edge either way
             step = np.abs(lowest[a] - lowest[b])
-        both = seen[a] & seen[b] & (step <= params.max_ground_step * max(1, abs(dc) + dr))
+        allowed = params.max_ground_step * max(1, abs(dc) + dr) + 2.0 * np.maximum(noise[a], noise[b])
+        both = seen[a] & seen[b] & (step <= allowed)
         sources.append(index[a][both])
         targets.append(index[b][both])
     count = int(seen.sum())
@@ -184,7 +234,9 @@ def standing_clusters(points: np.ndarray, ground: Ground, params: StandingParams
     sensor's place), largest first."""
     if len(points) == 0:
         return []
-    above = points[:, 2] - ground.under(points) > params.min_above
+    reach = params.min_above if sensor_xy is None else params.min_above_at(
+        np.hypot(points[:, 0] - sensor_xy[0], points[:, 1] - sensor_xy[1]))
+    above = points[:, 2] - ground.under(points) > reach
     standing = points[above]
     if len(standing) < params.min_points:
         return []
@@ -192,11 +244,12 @@ def standing_clusters(points: np.ndarray, ground: Ground, params: StandingParams
                              (standing[:, 1].min(), standing[:, 1].max() + 1e-6), params.cell)
     row, col, _ = spec.cell_of(standing[:, 0], standing[:, 1])
     row, col = np.clip(row, 0, spec.rows - 1), np.clip(col, 0, spec.cols - 1)
-    occupied = np.zeros(spec.shape, dtype=bool)
-    occupied[row, col] = True
+    counts = np.zeros(spec.shape, dtype=np.int64)
+    np.add.at(counts, (row, col), 1)
+    occupied = counts >= params.min_cell_points
     joined = ndimage.binary_dilation(occupied, iterations=params.join_cells) if params.join_cells else occupied
     labels, count = ndimage.label(joined, structure=np.ones((3, 3), dtype=bool))
-    of_point = labels[row, col]
+    of_point = np.where(occupied[row, col], labels[row, col], 0)   # a sparse cell's points belong to nothing
     order = np.argsort(of_point, kind="stable")
     bounds = np.searchsorted(of_point[order], np.arange(1, count + 2))
     reach_cells = max(1, int(round(params.fill_reach / ground.spec.cell)))
@@ -210,7 +263,7 @@ def standing_clusters(points: np.ndarray, ground: Ground, params: StandingParams
         under_row = np.clip(under_row, 0, ground.spec.rows - 1)
         under_col = np.clip(under_col, 0, ground.spec.cols - 1)
         grid_z = float(np.median(ground.heights[under_row, under_col]))
-        ground_z = local_ground(points, ground, members, grid_z, params)
+        ground_z = local_ground(points, ground, members, grid_z, params, sensor_xy)
         if sensor_xy is not None:
             ground_z = feet_ground(points, members, ground_z, sensor_xy, params)
         clusters.append(Cluster(members, ground_z, bool(seen_near[under_row, under_col].any())))
@@ -218,10 +271,10 @@ def standing_clusters(points: np.ndarray, ground: Ground, params: StandingParams
 
 
 def local_ground(points: np.ndarray, ground: Ground, members: np.ndarray, grid_z: float,
-                 params: StandingParams = StandingParams()) -> float:
+                 params: StandingParams = StandingParams(), sensor_xy: np.ndarray | None = None) -> float:
     """Step 4: the ground height at a cluster's middle from the raw points round it that are ground
-    (within `min_above` of the grid's ground) and lie `ring` beyond its outline: a least-squares
-    plane, refitted once without the points more than three deviations off."""
+    (within `min_above` of the grid's ground, or the noise's reach at its range) and lie `ring` beyond
+    its outline: a least-squares plane, refitted once without the points more than three deviations off."""
     middle = np.median(members[:, :2], axis=0)
     radius = float(np.percentile(np.linalg.norm(members[:, :2] - middle, axis=1), 90))
     low, high = radius + params.ring[0], radius + params.ring[1]
@@ -230,7 +283,10 @@ def local_ground(points: np.ndarray, ground: Ground, members: np.ndarray, grid_z
     candidates = points[near]
     distance = np.linalg.norm(candidates[:, :2] - middle, axis=1)
     ring = candidates[(distance >= low) & (distance <= high)]
-    ring = ring[np.abs(ring[:, 2] - ground.under(ring)) <= params.min_above]
+    reach = params.min_above
+    if sensor_xy is not None:
+        reach = float(params.min_above_at(float(np.linalg.norm(middle - sensor_xy))))
+    ring = ring[np.abs(ring[:, 2] - ground.under(ring)) <= reach]
     if len(ring) < params.ring_points:
         return grid_z
     design = np.column_stack([np.ones(len(ring)), ring[:, 0] - middle[0], ring[:, 1] - middle[1]])
@@ -258,7 +314,12 @@ def feet_ground(points: np.ndarray, members: np.ndarray, ring_z: float, sensor_x
     if len(column) < params.feet_rank:
         return ring_z
     feet = float(np.partition(column, params.feet_rank - 1)[params.feet_rank - 1])
-    trusted = float(np.linalg.norm(middle - np.asarray(sensor_xy, dtype=float))) <= params.ring_trusted_m
+    range_m = float(np.linalg.norm(middle - np.asarray(sensor_xy, dtype=float)))
+    if params.noise_per_m2 > 0:   # the column's lowest points are the noise's tail: the ring, unless hidden
+        low = float(np.percentile(column, 10))
+        hidden = low > ring_z + params.feet_hidden_m + 2.0 * float(params.noise_at(range_m))
+        return feet if hidden else ring_z
+    trusted = range_m <= params.ring_trusted_m
     if trusted and (abs(feet - ring_z) <= params.feet_agree_m or feet > ring_z + params.feet_hidden_m):
         return ring_z
     return feet
