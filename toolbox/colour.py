@@ -89,7 +89,12 @@ def with_title(rgb: np.ndarray, title: str) -> np.ndarray:
 def upscale(rgb: np.ndarray, min_size: int = 480) -> np.ndarray:
     """Enlarge a small image by an integer factor (nearest), so a 176x144 frame is readable."""
     factor = max(1, int(np.ceil(min_size / max(rgb.shape[:2]))))
-    return np.repeat(np.repeat(rgb, factor, axis=0), factor, axis=1) if factor > 1 else rgb
+    if factor == 1:
+        return rgb
+    # The same pixels as np.repeat along both axes; OpenCV lets go of the interpreter while it copies
+    # (a product's pictures are drawn in the server beside the transports).
+    height, width = rgb.shape[:2]
+    return cv2.resize(rgb, (width * factor, height * factor), interpolation=cv2.INTER_NEAREST_EXACT)
 
 
 def _stack(rgb: np.ndarray, strip: np.ndarray) -> np.ndarray:
