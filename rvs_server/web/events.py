@@ -2,10 +2,11 @@
 text connections and the ZeroMQ PUB socket, so a browser sees exactly the events they see.
 
 A browser that is slow, or stopped in a debugger, must never hold the server up. Each one gets a
-bounded queue that `publish` fills without waiting; its own writer task empties it. When the queue
-is full a progress event replaces the queued progress of the same job (coalesced: only the newest
-percent matters) and any other event is dropped and counted; the client is told how many before its
-next event, as `{"topic": "dropped", "data": {"count": N, "total": T}}`.
+bounded queue that `publish` fills without waiting; its own writer task empties it. A progress event
+replaces the same job's progress still waiting in the queue (coalesced: only the newest percent
+matters), except the job's `started` line, which marks where the job began and is always delivered.
+When the queue is full any other event is dropped and counted; the client is told how many before
+its next event, as `{"topic": "dropped", "data": {"count": N, "total": T}}`.
 """
 from __future__ import annotations
 
@@ -67,7 +68,7 @@ class ClientQueue:
             return
         entry = _Entry(key, text)
         self.entries.append(entry)
-        if key is not None:
+        if key is not None and data.get("message") != "started":
             self.by_key[key] = entry
         self.ready.set()
 

@@ -29,6 +29,20 @@ def test_progress_of_one_job_is_coalesced_to_the_newest():
     asyncio.run(run())
 
 
+def test_a_jobs_started_line_is_never_coalesced_away():
+    """A slow page still sees where the job began: only the percents after it are merged."""
+    async def run():
+        queue = ClientQueue(limit=8)
+        put(queue, "progress", job="9", percent=0, message="started")
+        for percent in (40, 100):
+            put(queue, "progress", job="9", percent=percent, message="")
+        got = topics(queue.take())
+        assert got == [("progress", {"job": "9", "percent": 0, "message": "started"}),
+                       ("progress", {"job": "9", "percent": 100, "message": ""})]
+        assert queue.coalesced == 1
+    asyncio.run(run())
+
+
 def test_a_full_queue_drops_counts_and_tells_the_client_first():
     async def run():
         queue = ClientQueue(limit=3)
