@@ -36,6 +36,7 @@ import tomllib
 from pathlib import Path
 
 import numpy as np
+from scipy import ndimage
 
 REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO / "tests"))
@@ -44,10 +45,14 @@ sys.path.insert(0, str(REPO))
 from clients.run_log import RunLog, report  # noqa: E402
 from drivers.sim.config import WorldConfig  # noqa: E402
 from drivers.sim.world import World  # noqa: E402
+from toolbox.planning.costs import inflate_hazards  # noqa: E402
+from toolbox.planning.paths import simplify_path  # noqa: E402
+from toolbox.planning.search import astar  # noqa: E402
 
 from conftest import ServerProcess, pairs, write_configs  # noqa: E402
 
 LANE_HALF_WIDTH = 0.50      # 0.25 half body + 0.10 guard margin + 0.15 for drive error
+PASS_HALF_WIDTH = 0.35      # driving to a lane: half the body and 0.1 m
 CLEAR_BELOW = 0.08          # a lane is clean when no rock on it is taller than this
 CLEAN_RUN_M = 4.0           # each clean run
 RESULTS = REPO / "tests" / "bench" / "results" / "hazard.jsonl"
@@ -57,11 +62,91 @@ def world_toml(seed: int, cover: float) -> str:
     return f"seed = {seed}\nsize_m = [20.0, 20.0]\n[rocks]\ncover = {cover:g}\n[craters]\ncount = 1\n"
 
 
+class Lanes:
+    """Where the truth has clear lanes: a lane's centre line must keep LANE_HALF_WIDTH from every rock
+    over CLEAR_BELOW and from ground steeper than 15 degrees, so the blocked cells are dilated by that
+    half width once and a lane is then a line of look-ups (at 15-20 % cover a clear 5 m lane is seldom
+    a turn away; this finds the nearest one a straight, clear drive away)."""
+
+    def __init__(self, world: World, cell: float = 0.04):
+        x0, x1, y0, y1 = world.bounds
+        self.cell, self.x0, self.y0 = cell, x0 + 1.0, y0 + 1.0     # a lane keeps 1 m off the world's edge
+        xs = np.arange(self.x0, x1 - 1.0, cell)
+        ys = np.arange(self.y0, y1 - 1.0, cell)
+        gx, gy = np.meshgrid(xs, ys)
+        blocked = world.protrusion_at(gx, gy) >= CLEAR_BELOW
+        coarse = world.slope_at(gx[::3, ::3], gy[::3, ::3], 0.25) >= 15.0
+        blocked |= np.repeat(np.repeat(coarse, 3, axis=0), 3, axis=1)[:len(ys), :len(xs)]
+        grown = inflate_hazards(blocked, cell, LANE_HALF_WIDTH)
+        self.forbidden = grown.mask
+        # Where the rover's centre may pass on its way to a lane (half its width and 0.1 m clear of any
+        # rock over CLEAR_BELOW); the world's edge is no way either.
+        self.passable = grown.distance_m > PASS_HALF_WIDTH + 1e-9
+
+    def clear(self, x: float, y: float, heading: float, length: float, behind: float = 0.4) -> bool:
+        """Whether the centre line from `behind` back to `length` + 0.3 ahead keeps clear (as lane_clear)."""
+        along = np.arange(-behind, length + 0.3, self.cell / 2)
+        col = np.floor((x + along * math.cos(heading) - self.x0) / self.cell).astype(int)
+        row = np.floor((y + along * math.sin(heading) - self.y0) / self.cell).astype(int)
+        rows, cols = self.forbidden.shape
+        if (col < 0).any() or (row < 0).any() or (col >= cols).any() or (row >= rows).any():
+            return False
+        return not bool(self.forbidden[row, col].any())
+
+    def cell_of(self, x: float, y: float) -> tuple[int, int]:
+        return int((y - self.y0) // self.cell), int((x - self.x0) // self.cell)
+
+    def route(self, x: float, y: float, length: float, reach: float = 8.0) -> list[tuple[float, float]] | None:
+        """Waypoints (world x, y) from the rover at (x, y) to the start of the nearest clear lane of
+        `length` (at any heading) that it can reach by passable ground, the start last; None when no
+        lane lies within `reach` along the way."""
+        rows, cols = self.passable.shape
+        here = self.cell_of(x, y)
+        if not (0 <= here[0] < rows and 0 <= here[1] < cols):
+            return None
+        passable = self.passable.copy()
+        # The rover may stand where its centre should not pass (it backed off a rock): its own spot
+        # and a step round it count as passable, or it could never leave.
+        r0, c0 = here
+        passable[max(0, r0 - 3):r0 + 4, max(0, c0 - 3):c0 + 4] = True
+        labels, _ = ndimage.label(passable)
+        mine = labels[here] if labels[here] else None
+        if mine is None:
+            return None
+        step = int(round(0.25 / self.cell))
+        rr, cc = np.mgrid[0:rows:step, 0:cols:step]
+        starts = (labels[rr, cc] == mine)
+        sx, sy = self.x0 + (cc + 0.5) * self.cell, self.y0 + (rr + 0.5) * self.cell
+        distance = np.hypot(sx - x, sy - y)
+        starts &= distance <= reach
+        headings = np.radians(np.arange(0, 360, 10))
+        for index in np.argsort(np.where(starts, distance, np.inf), axis=None):
+            if not starts.flat[index]:
+                break
+            lx, ly = float(sx.flat[index]), float(sy.flat[index])
+            if not any(self.clear(lx, ly, float(h), length) for h in headings):
+                continue
+            path = astar(np.where(passable, 1.0, np.inf), here, self.cell_of(lx, ly), 1.0, self.cell)
+            if not path.found:
+                continue
+            cells = path.cells
+            keep = simplify_path(cells, ~passable, 3.0)
+            points = [(self.x0 + (c + 0.5) * self.cell, self.y0 + (r + 0.5) * self.cell) for r, c in cells[keep]]
+            route: list[tuple[float, float]] = []
+            for index, point in enumerate(points[1:], 1):   # legs under 0.15 m are a turn's worth: merged
+                if index == len(points) - 1 or math.dist(point, route[-1] if route else points[0]) >= 0.15:
+                    route.append((float(point[0]), float(point[1])))
+            return route
+        return None
+
+
 class Scene:
     def __init__(self, seed: int, workdir: Path, cover: float):
         self.seed = seed
         text = world_toml(seed, cover)
         self.world = World.build(WorldConfig(**tomllib.loads(text)))
+        self.lanes = Lanes(self.world)
+        self.relocation_contacts = 0  # contacts while driving unguarded to a lane (not the guard's)
         config = write_configs(workdir / "configs", {"world.toml": text})
         self.server = ServerProcess(workdir / "data", config).start(timeout=180)
         self.client = self.server.connect(timeout=900)
@@ -107,23 +192,32 @@ class Scene:
             options = sorted(np.radians(np.arange(0, 360, 10)), key=lambda a: abs(_wrap(a - towards_centre)))
             target = next((a for a in options if self.lane_clear(x, y, a, length)), None)
             if target is None:
-                return None
+                if not self.relocate(length):
+                    return None
+                continue
             turn = math.degrees(_wrap(target - h))
             if abs(turn) >= 1.0:
                 self.command(f"drive --turn {turn:.1f} --unguarded")   # the lane is chosen on the truth
         x, y, h = self.true_pose()
         return (x, y, h) if self.lane_clear(x, y, h, length) else None
 
-    def relocate(self) -> None:
-        """No clear 5 m lane from here: drive 1.5 m down the clearest short lane, towards the centre."""
+    def relocate(self, length: float = 5.0) -> bool:
+        """No clear lane of `length` from here: drive to the start of the nearest one along a path the
+        truth says is passable, unguarded (positioning, not measured: its distance is not clean driving
+        and its contacts are counted apart). False when none is in reach."""
         x, y, h = self.true_pose()
-        towards_centre = math.atan2(-y, -x)
-        options = sorted(np.radians(np.arange(0, 360, 10)), key=lambda a: abs(_wrap(a - towards_centre)))
-        target = next((a for a in options if self.lane_clear(x, y, a, 2.0)), None)
-        if target is None:
-            return
-        self.command(f"drive --turn {math.degrees(_wrap(target - h)):.1f} --unguarded")   # chosen on the truth
-        self.command("drive --forward 1.5")
+        route = self.lanes.route(x, y, length)
+        if route is None:
+            return False
+        before = self.contacts()
+        for wx, wy in route:
+            x, y, h = self.true_pose()
+            turn = math.degrees(_wrap(math.atan2(wy - y, wx - x) - h))
+            if abs(turn) >= 1.0:
+                self.command(f"drive --turn {turn:.1f} --unguarded")
+            self.command(f"drive --forward {math.hypot(wx - x, wy - y):.2f} --unguarded")
+        self.relocation_contacts += self.contacts() - before
+        return True
 
     def drop(self, x: float, y: float, h: float, person: bool) -> tuple[str, str, float, float]:
         distance = float(self.rng.uniform(1.6, 3.8))
@@ -176,7 +270,8 @@ def run_scene(scene: Scene, sensor: str, encounters: int, routes: int, log: list
         after = scene.contacts()
         stopped = "drive stopped: hazard" in reply
         log.append({"seed": scene.seed, "kind": kind, "how": "drive", "height": height, "dropped_at": distance,
-                    "stopped": stopped, "contacts": after - before, "reply": reply, "stop_row": stops})
+                    "stopped": stopped, "contacts": after - before, "reply": reply,
+                    "stop_row": stops})
         stops += int(stopped)
         print(f"  seed {scene.seed} {kind} {height:.2f} m at {distance:.2f} m: "
               f"{'stopped' if stopped else 'NOT STOPPED'}, contacts {after - before}", flush=True)
@@ -223,7 +318,8 @@ def run_scene(scene: Scene, sensor: str, encounters: int, routes: int, log: list
             entry["clearance"] = None if value == "none" else float(value)
     summary = json.loads((Path(pairs(reply)["path"]) / "product.json").read_text()).get("summary")
     return {"clean_m": clean_m, "false_stops": false_stops, "stop_reply": pairs(reply), "summary": summary,
-            "contacts": scene.contacts() - contacts0}
+            "contacts": scene.contacts() - contacts0 - scene.relocation_contacts,
+            "relocation_contacts": scene.relocation_contacts}
 
 
 def back_off(scene: Scene) -> int:
