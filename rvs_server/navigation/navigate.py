@@ -139,6 +139,7 @@ class Traverse:
     orients: list[dict[str, Any]] = field(default_factory=list)   # each cycle's orient look (navigation.toml orient)
     moved: list[float] = field(default_factory=lambda: [0.0, 0.0])  # metres, degrees since the last fix
     best_percent: float = 0.0
+    tof_exposure: int = -1               # the SR4000's exposure as the last panorama left it (-1: none yet)
 
     @property
     def rover(self) -> RoverPose:
@@ -211,6 +212,10 @@ class Navigation:
         if "traverse" in resume:
             self.state = Traverse(**resume["traverse"])
             self.rover.pose_estimate = self.state.rover
+            if self.state.tof_exposure >= 0:
+                # The restart reopened the SR4000 at its configured exposure; the next panorama's first
+                # view must start from the one the last panorama left, as in an uninterrupted run.
+                ctx.devices.tof.require().set_integration_time(self.state.tof_exposure)
             if self.state.true_path:   # a restarted simulated world has the rover at its start
                 self.drive_by.resume_at(*self.state.true_path[-1][:3])
         else:
@@ -295,7 +300,10 @@ class Navigation:
         results, provenance = run_workflow(workflow, operations, params, CycleJob(self.ctx, cycle, state.best_percent),
                                            folder)
         for acquisition in ("acquired_tof", "acquired"):      # navigate-fused has both
-            leave_camera_as_acquired(self.ctx, results.get(acquisition) or {})
+            acquired = results.get(acquisition) or {}
+            leave_camera_as_acquired(self.ctx, acquired)
+            if acquired.get("sensor") == "tof" and int(acquired.get("integration_time", -1)) >= 0:
+                state.tof_exposure = int(acquired["integration_time"])
         aligned = results["aligned"]
         after = RoverPose.from_matrix(np.asarray(aligned["correction"]) @ before.to_world())
         if self.orienting and aligned["accepted"]:   # the odometer's chain follows the map's correction
