@@ -167,6 +167,13 @@ def hook(spec: str, where: str) -> Callable[..., Any]:
     return function
 
 
+def call_hook(spec: str, *args: Any, **kwargs: Any) -> Any:
+    """Call the hook FILE.py:FUNCTION (or MODULE:FUNCTION) with these arguments: what a hook hands a
+    process pool. A FILE.py hook's module exists only in the process that loaded it, so its functions
+    do not pickle by name into a pool's fresh process; their spec does, and each process loads it."""
+    return hook(spec, "call_hook")(*args, **kwargs)
+
+
 def load_campaign(path: str | Path) -> Campaign:
     path = Path(path).resolve()
     try:

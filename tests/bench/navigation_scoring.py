@@ -24,6 +24,7 @@ from typing import Any
 
 import numpy as np
 
+from clients.campaign import call_hook
 from drivers.sim.config import WorldConfig
 from drivers.sim.world import World
 from toolbox.grid import GridSpec
@@ -106,7 +107,9 @@ def usable_scenes(first: int, count: int, size: float, jobs: int = 2,
         while len(scenes) < count:
             batch = list(range(seed, seed + count - len(scenes)))
             unknown = [s for s in batch if s not in answers]
-            found = pool.map(scene, unknown, [size] * len(unknown))
+            # By the hook's spec: loaded as a campaign's FILE.py hook, this module is not importable by name.
+            found = pool.map(call_hook, [f"{Path(__file__).resolve()}:scene"] * len(unknown), unknown,
+                             [size] * len(unknown))
             answers.update({s: (f if f is not None else False) for s, f in zip(unknown, found, strict=True)})
             for candidate in batch:
                 if answers[candidate]:

@@ -69,6 +69,31 @@ def test_the_navigation_campaign_file_names_its_runs_and_a_bad_hook_is_refused(t
         C.load_campaign(tmp_path / "bad.toml")
 
 
+HOOK_WITH_A_POOL = """
+from concurrent.futures import ProcessPoolExecutor
+from clients.campaign import call_hook
+
+def square(value):
+    return value * value
+
+def runs():
+    # max_tasks_per_child: fresh (spawned) processes, where this file's module does not exist by name
+    with ProcessPoolExecutor(max_workers=2, max_tasks_per_child=1) as pool:
+        found = pool.map(call_hook, [f"{__file__}:square"] * 3, [1, 2, 3])
+        return [{"seed": value} for value in found]
+"""
+
+
+def test_a_runs_from_hook_hands_its_process_pool_functions_by_spec(tmp_path):
+    """A FILE.py hook's module lives only in the process that loaded it: navigation.toml's runs_from
+    built its missing worlds in a pool and broke it (BrokenProcessPool) until it passed call_hook
+    the function's FILE.py:FUNCTION instead of the function."""
+    (tmp_path / "pooled.py").write_text(HOOK_WITH_A_POOL)
+    (tmp_path / "one.rvs").write_text("status\n")
+    (tmp_path / "pooled.toml").write_text('mission = "one.rvs"\nruns_from = "pooled.py:runs"\n')
+    assert [run["seed"] for run in C.load_campaign(tmp_path / "pooled.toml").runs] == [1, 4, 9]
+
+
 def traverse(product: Path, outcome: str, end: tuple[float, float], estimate: tuple[float, float],
              contacts: int = 0) -> Path:
     (product / "truth").mkdir(parents=True)
