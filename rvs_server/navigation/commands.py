@@ -125,9 +125,11 @@ class NavigationSettings(Settings):
                                       "its error exceed the room between the footprint and the hazards; 0: off")
     footprint_m: tuple[PositiveFloat, PositiveFloat] = Field((0.55, 0.50), description="the rover's footprint, "
                                                              "length x width, metres, for the drive-error cut")
-    orient: bool = Field(False, description="each cycle begins with an orient look along the heading (visual "
-                         "odometry since the last cycle's, the sun's heading; orient.toml): the map alignment starts "
-                         "from it instead of dead reckoning; and the drives look every orient_step_m")
+    orient: PerSensor[bool] = Field(
+        PerSensor[bool](tof=False, stereo=False), description="per sensor (or one for both), each cycle begins "
+        "with an orient look along the heading (visual odometry since the last cycle's, the sun's heading; "
+        "orient.toml): the map alignment starts from it instead of dead reckoning; and the drives look every "
+        "orient_step_m")
     orient_step_m: float = Field(1.0, gt=0.1, le=10, description="with orient, a drive's legs are cut into parts "
                                  "of at most this length with an orient look after each: the rover re-aims at the "
                                  "next waypoint from where it is, not from where dead reckoning says")

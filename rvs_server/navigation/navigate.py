@@ -207,7 +207,7 @@ class Navigation:
         self.drive_by = self.rover.drive(self.settings.drive, "navigation.drive")
         self.orient_settings: OrientSettings = ctx.settings_of("orientation")
         # A GNC's pose is the estimate: nothing to orient between.
-        self.orienting = self.settings.orient and self.drive_by.simulated
+        self.orienting = self.settings.orient.of(cfg.sensor) and self.drive_by.simulated
         resume = ctx.resume or {}
         if "traverse" in resume:
             self.state = Traverse(**resume["traverse"])

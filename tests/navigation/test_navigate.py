@@ -66,8 +66,9 @@ def test_navigate_arrives_without_touching_a_rock(server_factory, world):
     """... and with navigation.toml orient, looks along the heading between its maps (the other
     navigate tests run without)."""
     navigation = (REPO / "configs" / "navigation.toml").read_text()
-    assert "orient = false" in navigation
-    server = server_factory(configs={"navigation.toml": navigation.replace("orient = false", "orient = true")})
+    navigation, count = re.subn(r"^orient = .*$", "orient = true", navigation, flags=re.M)
+    assert count == 1
+    server = server_factory(configs={"navigation.toml": navigation})
     goal = open_goal(world, (4.0, 4.6))
     with server.connect() as c:
         tag = "nav"

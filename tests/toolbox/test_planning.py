@@ -4,6 +4,7 @@ the drivable prefix, and the reasons given when there is no path."""
 from __future__ import annotations
 
 import math
+import tomllib
 
 import numpy as np
 import pytest
@@ -38,6 +39,8 @@ from toolbox.planning import (
     world_to_cells,
 )
 from toolbox.planning.search import ASTAR_SLACK
+
+from conftest import REPO
 
 SQRT2 = math.sqrt(2.0)
 
@@ -591,6 +594,18 @@ def test_holes_are_hazards_for_stereo_and_stay_unknown_for_tof_by_default():
     assert holes_as_hazards(layers, start, "tof", settings) is layers
     both = NavigationSettings(holes={"tof": "hazard", "stereo": "hazard"})
     assert holes_as_hazards(layers, start, "tof", both).hazard[20:24, 20:24].all()
+
+
+def test_navigation_toml_says_per_sensor_whether_navigate_orients():
+    """navigation.toml orient: per sensor, as the navigation campaigns decided it; one value serves both."""
+    from rvs_server.config import load_model
+    from rvs_server.navigation.commands import NavigationSettings
+    shipped = tomllib.loads((REPO / "configs" / "navigation.toml").read_text())["orient"]
+    settings = load_model(REPO / "configs" / "navigation.toml", NavigationSettings)
+    assert settings.orient.of("tof") is shipped["tof"] and settings.orient.of("stereo") is shipped["stereo"]
+    assert settings.orient.of("fused") is shipped["tof"]           # fused orients with the SR4000
+    both = NavigationSettings(orient=True)
+    assert both.orient.of("tof") and both.orient.of("stereo")
 
 
 def test_unknown_ground_is_to_look_at_until_a_look_from_close_by_has_seen_into_it():
