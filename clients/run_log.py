@@ -13,6 +13,7 @@ scripts under tests/bench/ use it now; `rvs campaign` (on Dask) is meant to writ
 """
 from __future__ import annotations
 
+import argparse
 import json
 import os
 from collections.abc import Callable, Iterable
@@ -132,3 +133,17 @@ def report(path: Path, summarise: Callable[[list[dict[str, Any]], str], str]) ->
                   for r in runs if "error" in r]
         blocks.append("\n".join(lines))
     return "\n\n".join(blocks)
+
+
+def add_results_options(parser: argparse.ArgumentParser, default: Path) -> None:
+    """A campaign script's --results FILE (where its runs are kept) and --report FILE."""
+    parser.add_argument("--results", type=Path, default=default, help="the JSON-lines file runs are kept in")
+    parser.add_argument("--report", type=Path, metavar="FILE", help="print the summary of this results file and stop")
+
+
+def reported(args: argparse.Namespace, summarise: Callable[[list[dict[str, Any]], str], str]) -> bool:
+    """With --report: print that file's summary (`report`) and say so, for the script to stop."""
+    if args.report is None:
+        return False
+    print(report(args.report, summarise))
+    return True

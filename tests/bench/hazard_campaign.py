@@ -42,7 +42,7 @@ REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO / "tests"))
 sys.path.insert(0, str(REPO))
 
-from clients.run_log import RunLog, report  # noqa: E402
+from clients.run_log import RunLog, add_results_options, report, reported  # noqa: E402
 from drivers.sim.config import WorldConfig  # noqa: E402
 from drivers.sim.world import World  # noqa: E402
 from toolbox.planning.costs import inflate_hazards  # noqa: E402
@@ -378,12 +378,10 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, nargs="+", default=[21, 22, 23, 24, 25])
     parser.add_argument("--encounters", type=int, default=8, help="blind-drive encounters per scene")
     parser.add_argument("--routes", type=int, default=2, help="taught-route encounters per scene")
-    parser.add_argument("--results", type=Path, default=RESULTS, help="the JSON-lines file scenes are kept in")
-    parser.add_argument("--report", type=Path, help="print the summary of this results file and exit")
+    add_results_options(parser, RESULTS)
     parser.add_argument("--keep", help="keep each scene's data directory under this directory")
     args = parser.parse_args()
-    if args.report:
-        print(report(args.report, summarise))
+    if reported(args, summarise):
         return
     log = RunLog(args.results, {"encounters": args.encounters, "routes": args.routes, "cover": args.cover})
     planned = [{"seed": seed, "sensor": args.sensor} for seed in args.seeds]

@@ -13,25 +13,37 @@ score it without our code):
 Also prints dem-full-tof's time per step and the server's peak memory.
 
     .venv/bin/python tests/bench/measure_maps.py [--seeds 1 2 3 4 5] [--sim-speed 100]
-        [--sensors tof stereo fused]
+        [--sensors tof stereo fused] [--label NAME] [--results tests/bench/results/maps.jsonl] [--keep DIR]
+    .venv/bin/python tests/bench/measure_maps.py --report tests/bench/results/maps.jsonl
+
+Each seed's scores per sensor, the whole disc's and within 4 m of the rover (the map-quality goals'
+reach: rocks counted by their centre), go to --results as the seed ends (clients/run_log.py); a rerun
+with the same --label and sim speed skips the seeds and sensors already there. --label names the
+code's revision (the maps' rules change; the file keeps one table per label). --keep DIR keeps the
+products for why_rocks_missed.py; without it they go with a temporary folder.
 """
 from __future__ import annotations
 
 import argparse
+import shutil
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO / "tests"))
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "tests" / "bench"))
-from maps_scoring import mean_line, peak_rss_mib, score_product, seed_line, timing_line, timings  # noqa: E402
+from maps_scoring import near_line, peak_rss_mib, score_product, seed_line, summarise, timing_line, timings  # noqa: E402
+
+from clients.run_log import RunLog, add_results_options, report, reported  # noqa: E402
 
 import conftest  # noqa: E402
 from conftest import ServerProcess, pairs  # noqa: E402
 
 COMMANDS = {"tof": "dem-full-tof", "stereo": "dem-full", "fused": "dem-full-fused"}
+RESULTS = REPO / "tests" / "bench" / "results" / "maps.jsonl"
 
 
 def run(client, line: str) -> dict[str, str]:
@@ -46,12 +58,23 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3, 4, 5])
     parser.add_argument("--sim-speed", type=float, default=100.0)
     parser.add_argument("--sensors", nargs="+", choices=list(COMMANDS), default=["tof", "stereo"])
+    parser.add_argument("--label", default="main", help="the code's revision: one table per label")
+    parser.add_argument("--keep", type=Path, metavar="DIR", help="keep each seed's server folder (products) here")
+    add_results_options(parser, RESULTS)
     args = parser.parse_args()
+    if reported(args, summarise):
+        return
     conftest.SIM_SPEED = args.sim_speed
-    rows: dict[str, list] = {sensor: [] for sensor in args.sensors}
+    log = RunLog(args.results, {"label": args.label, "sim_speed": args.sim_speed})
     with tempfile.TemporaryDirectory() as tmp:
+        root = args.keep or Path(tmp)
         for seed in args.seeds:
-            base = Path(tmp) / f"seed{seed}"
+            todo = [sensor for sensor in args.sensors if RunLog.key({"seed": seed, "sensor": sensor}) not in log.done()]
+            if not todo:
+                print(f"seed {seed}: {', '.join(args.sensors)} already in {args.results}", flush=True)
+                continue
+            base = root / f"seed{seed}"
+            shutil.rmtree(base, ignore_errors=True)
             config_dir = base / "configs"
             conftest.write_configs(config_dir)
             (config_dir / "world.toml").write_text((REPO / "configs" / "world.toml").read_text())
@@ -59,18 +82,21 @@ def main() -> None:
                                    extra_args=["--world-seed", str(seed)]).start()
             try:
                 with server.connect(timeout=900) as c:
-                    replies = {sensor: run(c, f"{COMMANDS[sensor]} --output {sensor}") for sensor in args.sensors}
+                    replies = {}
+                    for sensor in todo:
+                        started = time.monotonic()
+                        replies[sensor] = (run(c, f"{COMMANDS[sensor]} --output {sensor}"), time.monotonic() - started)
                 peak = peak_rss_mib(server.proc.pid)
             finally:
                 server.stop()
-            for sensor, reply in replies.items():
+            for sensor, (reply, seconds) in replies.items():
                 result = score_product(Path(reply["path"]), sensor)
-                rows[sensor].append(result)
-                print(seed_line(seed, sensor, result), flush=True)
+                log.append({"seed": seed, "sensor": sensor}, seconds, **result,
+                           **({"product": reply["path"]} if args.keep else {}))
+                print(seed_line(seed, sensor, result) + "\n" + near_line(seed, sensor, result), flush=True)
             if "tof" in replies:
-                print(timing_line(seed, timings(Path(replies["tof"]["path"])), peak), flush=True)
-    for sensor, results in rows.items():
-        print(mean_line(sensor, results))
+                print(timing_line(seed, timings(Path(replies["tof"][0]["path"])), peak), flush=True)
+    print(report(args.results, summarise))
 
 
 if __name__ == "__main__":

@@ -40,7 +40,7 @@ sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "tests" / "bench"))
 from navigation_scoring import scene_config, score_product, summarise, usable_scenes  # noqa: E402
 
-from clients.run_log import RunLog, report  # noqa: E402
+from clients.run_log import RunLog, add_results_options, report, reported  # noqa: E402
 
 from conftest import ServerProcess, pairs  # noqa: E402
 
@@ -90,13 +90,11 @@ def main() -> None:
     parser.add_argument("--sim-speed", type=float, default=100.0)
     parser.add_argument("--only", type=int, nargs="+", help="run only these seeds of the campaign (a quick check)")
     parser.add_argument("--out", type=Path, default=Path("/tmp/rvs-navigation"), help="the servers' work folders")
-    parser.add_argument("--results", type=Path, default=RESULTS, help="the JSON-lines file runs are kept in")
-    parser.add_argument("--report", type=Path, help="print the summary of this results file and exit")
+    add_results_options(parser, RESULTS)
     parser.add_argument("--orient", choices=["on", "off"], default="off", help="navigation.toml orient: an orient "
                         "look between the moves")
     args = parser.parse_args()
-    if args.report:
-        print(report(args.report, summarise))
+    if reported(args, summarise):
         return
     args.out.mkdir(parents=True, exist_ok=True)
     log = RunLog(args.results, {"size_m": args.size, "orient": args.orient})

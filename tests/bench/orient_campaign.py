@@ -45,7 +45,7 @@ REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO / "tests"))
 sys.path.insert(0, str(REPO))
 
-from clients.run_log import RunLog, report  # noqa: E402
+from clients.run_log import RunLog, add_results_options, report, reported  # noqa: E402
 from drivers.sim.motion import dead_reckon  # noqa: E402
 
 from conftest import ServerProcess, pairs, write_configs  # noqa: E402
@@ -293,13 +293,11 @@ def main() -> None:
     parser.add_argument("--look-before-drive", type=float, default=LOOK_BEFORE_DRIVE_DEG,
                         help="an unsplit turn larger than this (deg) gets a look before the forward drive")
     parser.add_argument("--jobs", type=int, default=2)
-    parser.add_argument("--results", type=Path, default=RESULTS, help="the JSON-lines file runs are kept in")
-    parser.add_argument("--report", type=Path, help="print the summary of this results file and exit")
+    add_results_options(parser, RESULTS)
     parser.add_argument("--out", type=Path, default=Path("/tmp/rvs-orient"), help="the servers' work folders")
     parser.add_argument("--verbose", action="store_true", help="a line per look")
     args = parser.parse_args()
-    if args.report:
-        print(report(args.report, summarise))
+    if reported(args, summarise):
         return
     args.out.mkdir(parents=True, exist_ok=True)
     log = RunLog(args.results, {"length_m": args.length, "max_turn_deg": args.max_turn,

@@ -47,7 +47,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-from clients.run_log import RunLog, report  # noqa: E402
+from clients.run_log import RunLog, add_results_options, report, reported  # noqa: E402
 
 import conftest  # noqa: E402
 from conftest import ServerProcess, pairs, write_configs  # noqa: E402
@@ -296,8 +296,7 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, default=20)
     parser.add_argument("--first-seed", type=int, default=401)
     parser.add_argument("--seconds", type=float, default=40.0, help="wall (= simulated) seconds of tracking")
-    parser.add_argument("--results", type=Path, default=RESULTS, help="the JSON-lines file scenes are kept in")
-    parser.add_argument("--report", type=Path, help="print the summary of this results file and exit")
+    add_results_options(parser, RESULTS)
     parser.add_argument("--out", type=Path, default=Path("/tmp/rvs-track"), help="the servers' work folders")
     parser.add_argument("--tracking", action="append", default=[], metavar="KEY=VALUE",
                         help="a tracking.toml setting for every scene (TOML value: stereo_resolution='medium'); "
@@ -305,8 +304,7 @@ def main() -> None:
     parser.add_argument("--rescore", action="store_true", help="score the runs in --results again from their "
                         "track.csv files (their work folders must still be there)")
     args = parser.parse_args()
-    if args.report:
-        print(report(args.report, sensor_table))
+    if reported(args, sensor_table):
         return
     args.out.mkdir(parents=True, exist_ok=True)
     tracking = dict(item.split("=", 1) for item in args.tracking)

@@ -72,6 +72,9 @@ def test_maps_scores_and_report_from_the_products(tmp_path):
     disc = np.hypot(*np.meshgrid(np.arange(-0.95, 1.0, 0.1), np.arange(-0.95, 1.0, 0.1))) <= 4.5
     assert values["tof_observed"] == pytest.approx(disc[:, :10].sum() / disc.sum())     # half of the disc
     assert values["tof_timings_s"] == {"acquired": 3.5, "total": 6.0} and math.isnan(values["peak_memory_mib"])
+    # All of this product lies within 4 m of the rover: the near figures are the whole disc's.
+    assert values["tof_rmse_4m"] == pytest.approx(values["tof_rmse"]) and values["tof_rocks_4m"] == 1
+    assert values["tof_recall_4m"] == 1.0 and values["stereo_false_hazard_4m"] == values["stereo_false_hazard"]
     text = M.report([{"run": {"seed": 3}, "values": values},
                      {"run": {"seed": 1}, "values": {**values, "tof_rmse": 0.03}}]).splitlines()
     assert text[0] == ("seed 1 tof    rmse  3.00 cm  p95  1.00 cm  bias +1.00 cm  observed 0.50  recall 1.00 "
