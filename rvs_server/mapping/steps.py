@@ -330,6 +330,14 @@ class FuseParams(StepParams):
     stereo_sigma_min_m: float = Field(FusionNoise.stereo_sigma_min_m, gt=0)
     bias_range_m: float = Field(FusionNoise.bias_range_m, gt=0, description="the stereo bias is measured on cells "
                                 "both saw within this")
+    bias_band_m: float = Field(FusionNoise.bias_band_m, gt=0, description="the bias is a line in range through "
+                               "the medians of bands this wide")
+    min_band_cells: int = Field(FusionNoise.min_band_cells, ge=1, description="a band with fewer shared cells is "
+                                "left out of the bias line")
+    bias_hold_m: float = Field(FusionNoise.bias_hold_m, ge=0, description="the bias line is held level from this "
+                               "far past its last band")
+    slope_sigmas: float = Field(FusionNoise.slope_sigmas, ge=0, description="a bias slope within this many "
+                                "standard errors of 0 is taken for noise: one median instead")
     min_shared_cells: int = Field(FusionNoise.min_shared_cells, ge=1, description="fewer shared cells: no bias "
                                   "correction")
     disagree_sigmas: float = Field(FusionNoise.disagree_sigmas, gt=0, description="heights further apart than this "
@@ -347,7 +355,8 @@ def fuse(step: StepContext, params: FuseParams, tof: dict, stereo: dict) -> dict
     return {"spec": fused.dem.spec, "heights": fused.dem.heights, "counts": fused.dem.counts, **fused.summary()}
 
 
-FUSION_KEYS = ("stereo_bias_m", "bias_measured", "shared_cells", "tof_only", "stereo_only", "weighted", "tof_kept")
+FUSION_KEYS = ("stereo_bias_m", "stereo_bias_per_m", "stereo_bias_at_m", "bias_measured", "shared_cells", "tof_only",
+               "stereo_only", "weighted", "tof_kept")
 
 
 def fusion_record(results: dict[str, Any]) -> dict[str, Any] | None:

@@ -11,15 +11,15 @@ from toolbox.mapping.fuse import FusionNoise, fuse_dems
 NOISE = FusionNoise()
 
 
-def flat_pair(seed: int, bias: float = 0.02, tof_reach_m: float = 4.5):
+def flat_pair(seed: int, bias: float = 0.02, tof_reach_m: float = 4.5, bias_per_m: float = 0.0):
     """DEMs of flat ground at z = 0 round a rover at (0, 0): TOF to tof_reach_m, stereo to 7 m,
-    each with its own noise at each cell's range and the stereo `bias` high."""
+    each with its own noise at each cell's range and the stereo `bias` (+ bias_per_m x range) high."""
     rng = np.random.default_rng(seed)
     spec = GridSpec.covering((-7.0, 7.0), (-7.0, 7.0), 0.05)
     xs, ys = spec.centres()
     r = np.hypot(xs[None, :], ys[:, None])
     tof = np.where((r > 1.0) & (r <= tof_reach_m), rng.normal(0, NOISE.tof_sigma(r)), np.nan)
-    stereo = np.where((r > 1.0) & (r <= 7.0), bias + rng.normal(0, NOISE.stereo_sigma(r)), np.nan)
+    stereo = np.where((r > 1.0) & (r <= 7.0), bias + bias_per_m * r + rng.normal(0, NOISE.stereo_sigma(r)), np.nan)
     as_dem = lambda h: Dem(spec, h.astype(np.float32), np.where(np.isfinite(h), 4, 0).astype(np.int32))  # noqa: E731
     return as_dem(tof), as_dem(stereo), r
 
@@ -35,6 +35,21 @@ def test_the_stereo_bias_is_measured_and_removed_and_both_together_beat_either()
     assert abs(float(np.mean(fused.dem.heights[far]))) < 0.003           # the bias is gone beyond the TOF too
     assert fused.stereo_only == int(far.sum()) and fused.dem.counts[shared].min() == 8
     assert fused.tof_kept < 0.01 * shared.sum()                          # noise alone rarely disagrees
+
+
+def test_a_stereo_bias_growing_with_range_is_taken_off_as_a_line_held_level_past_the_tof():
+    """The stereo reads -0.6 cm at 1-2 m and +1.6 cm at 4-5 m on a simulated panorama: one median
+    left the cells past the TOF's reach 1-2 cm high."""
+    tof, stereo, r = flat_pair(5, bias=-0.012, bias_per_m=0.006)
+    fused = fuse_dems(tof, stereo, (0.0, 0.0))
+    assert abs(fused.bias.per_m - 0.006) < 0.001 and 2.5 < fused.bias.at_m < 3.5
+    assert abs(fused.stereo_bias_m - (-0.012 + 0.006 * fused.bias.at_m)) < 0.001
+    for near, far in [(1.0, 2.0), (3.0, 4.0), (4.5, 6.0)]:     # the last beyond the TOF: the line carried on
+        band = (r > near) & (r <= far) & np.isfinite(fused.dem.heights)
+        assert abs(float(np.median(fused.dem.heights[band]))) < 0.003, (near, far)
+    held = fused.bias(np.array([6.9]))[0]                       # level from 1.5 m past the last band
+    assert abs(held - fused.bias(np.array([fused.bias.far_m]))[0]) < 1e-12 and fused.bias.far_m < 6.9
+    assert fused.summary()["stereo_bias_per_m"] == round(fused.bias.per_m, 5)
 
 
 def test_a_stereo_mismatch_where_the_tof_measured_is_not_believed_a_rock_only_the_stereo_saw_is():
