@@ -133,10 +133,7 @@ def run_mapping(ctx: JobContext, cfg: DemConfig, sensor: str) -> dict[str, Any]:
                               "steps": provenance, "args": args.model_dump(mode="json")})
     write_started = time.perf_counter()
     summary = write_maps(ctx, product, results)
-    fusion = fusion_record(results)
-    if fusion is not None:
-        summary.update(stereo_bias=f"{fusion['stereo_bias_m']:.4f}", shared_cells=fusion["shared_cells"])
-        product.note("fusion", fusion)
+    note_fusion(product, results, summary)
     if ctx.settings.keep_views:
         keep_views(product, workflow, results, ctx.devices.rover.pose_estimate, ctx.server.calibration(),
                    ctx.settings, args, command)
@@ -173,6 +170,14 @@ def _north_up(grid_rgb: np.ndarray) -> np.ndarray:
 def _legend_title(spec: GridSpec) -> str:
     return (f"{spec.cols * spec.cell:.1f} x {spec.rows * spec.cell:.1f} m, cell {spec.cell * 100:.0f} cm, "
             f"origin ({spec.origin_x:.2f}, {spec.origin_y:.2f}), north up")
+
+
+def note_fusion(product: Any, results: dict[str, Any], summary: dict[str, Any]) -> None:
+    """A fused workflow's dem.fuse findings: into product.json `fusion` and the reply's summary."""
+    fusion = fusion_record(results)
+    if fusion is not None:
+        summary.update(stereo_bias=f"{fusion['stereo_bias_m']:.4f}", shared_cells=fusion["shared_cells"])
+        product.note("fusion", fusion)
 
 
 def write_maps(ctx: JobContext, product: Any, results: dict[str, Any],

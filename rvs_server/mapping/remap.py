@@ -29,7 +29,7 @@ from rvs_server.products.manifests import Products
 from rvs_server.workflow import WorkflowError, load_workflow, resolve_params, run_workflow
 from toolbox.geometry import RoverPose
 
-from .commands import MappingSettings, WorkflowArgs, module, write_maps
+from .commands import MappingSettings, WorkflowArgs, module, note_fusion, write_maps
 from .steps import operations
 from .stored_views import ACQUISITION_OPS, FOLDER, NoStoredViews, keep_views, load_views, stored_key
 
@@ -144,6 +144,7 @@ def remap(source: str | Path, workflow_file: str | Path, data_dir: str | Path | 
                             "workflow": (manifest.get("workflow") or {}).get("sha256_16"),
                             "settings": "config dir " + str(config_dir) if config_dir else "the source's"})
     summary = write_maps(job, product, results, settings)  # type: ignore[arg-type]
+    note_fusion(product, results, summary)
     _copy_truth(source, product)
     keep_views(product, workflow, results, stored.pose, stored.calibration, settings, args, stored.command)
     product.timing("total", time.perf_counter() - started)
