@@ -49,7 +49,8 @@ class HazardActivity(Activity["Host"]):
             max_reach_cells=settings.max_reach_cells,
             hazard=HazardConfig(slope_limit_deg=mapping.slope_limit_deg, step_limit=mapping.step_limit,
                                 roughness_limit=mapping.roughness_limit,
-                                step_min_cells=mapping.tof_step_min_cells if sensor == "tof" else 5))
+                                step_min_cells=mapping.tof_step_min_cells if sensor == "tof"
+                                else settings.stereo_step_min_cells))
         self.tilt_deg = settings.tof_tilt_deg if sensor == "tof" else settings.stereo_tilt_deg
         self.memory = HazardMemory(self.params)
         self._memory_lock = threading.Lock()

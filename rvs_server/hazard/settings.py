@@ -21,6 +21,10 @@ class HazardSettings(Settings):
     tof_tilt_deg: float = Field(-40.0, ge=-80, le=0, description="SR4000 tilt while detecting: the view spans "
                                 "about 1 to 3.7 m ahead of the rover's centre")
     stereo_tilt_deg: float = Field(-35.0, ge=-80, le=0)
+    stereo_step_min_cells: int = Field(5, ge=1, le=25, description="stereo: a step counts when this many cells "
+                                       "within 0.1 m exceed the limit (the TOF takes mapping.toml's). One frame's "
+                                       "stereo corridor is noisier than a panorama's map, which counts 2: 5 is what "
+                                       "the guard was built with, kept until the stereo guard campaign measures less")
     reach_m: float = Field(4.0, gt=0, le=10, description="look-ahead past the rover's leading edge")
     side_margin_m: float = Field(0.10, ge=0, le=1, description="added each side of the swept footprint")
     max_reach_cells: float = Field(2.0, ge=0, le=10, description="corridor DEM holes filled this close to data")
