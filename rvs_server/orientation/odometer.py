@@ -24,7 +24,7 @@ import numpy as np
 
 from toolbox.geometry import RoverPose, apply, invert
 from toolbox.odometry.aim import Aim, View, choose_aim, keyframe_points
-from toolbox.odometry.chain import HeadingFix, PlanarBelief, carry, fuse_heading, planar, wrap
+from toolbox.odometry.chain import HeadingFix, PlanarBelief, carry, fuse_heading, planar, with_drift, wrap
 from toolbox.odometry.depth import DepthOdometryParams, depth_motion, depth_picture, depth_turn
 from toolbox.odometry.estimate import MotionEstimate, OdometryFailure
 from toolbox.odometry.stereo import StereoOdometryParams, match_picture, stereo_keyframe, stereo_motion
@@ -112,7 +112,7 @@ class Odometer:
         key = self.keyframe
         estimate = _level(look.estimate, look.roll, look.pitch)
         if key is None or key.epoch != epoch or key.sensor != look.sensor or self.reference is None:
-            return self._start(look, estimate, epoch)
+            return self._start(look, estimate, epoch, settings)
         started = time.perf_counter()
         guess = self.reference.guess(estimate, look.camera_to_rover)
         try:
@@ -129,9 +129,9 @@ class Odometer:
         odometry_s = time.perf_counter() - started
         carried = carry(key.belief, key.camera_to_rover, motion.key_from_new,
                         motion.covariance * settings.covariance_scale, look.camera_to_rover,
-                        heading_scale=settings.heading_sigma_scale.of(look.sensor))
-        carried = PlanarBelief(_level(RoverPose.from_matrix(carried.rover_to_world), look.roll, look.pitch),
-                               carried.covariance)
+                        heading_scale=settings.heading_sigma_scale.of(look.sensor),
+                        drift_walk=math.radians(settings.heading_drift_walk.of(look.sensor)))
+        carried = carried.moved(_level(RoverPose.from_matrix(carried.rover_to_world), look.roll, look.pitch))
         belief, fix = self._fuse_sun(carried, look, settings)
         sources = [look.sensor] + (["sun"] if fix is not None and fix.used else [])
         number = key.number
@@ -198,18 +198,18 @@ class Odometer:
         `correction` (world frame, 4 x 4): move the chain with it."""
         key, reference = self.keyframe, self.reference
         if key is not None:
-            key.belief = PlanarBelief(correction @ key.belief.rover_to_world, key.belief.covariance)
+            key.belief = key.belief.moved(correction @ key.belief.rover_to_world)
         if reference is not None:
             reference.estimate_after = correction @ reference.estimate_after
         if self.last_look is not None:
             frame, last = self.last_look
-            frame.belief = PlanarBelief(correction @ frame.belief.rover_to_world, frame.belief.covariance)
+            frame.belief = frame.belief.moved(correction @ frame.belief.rover_to_world)
             last.estimate_after = correction @ last.estimate_after
         if self.last is not None:
-            self.last = PlanarBelief(correction @ self.last.rover_to_world, self.last.covariance)
+            self.last = self.last.moved(correction @ self.last.rover_to_world)
 
     # ------------------------------------------------------------------------------------------
-    def _start(self, look: Look, estimate: np.ndarray, epoch: int) -> Outcome:
+    def _start(self, look: Look, estimate: np.ndarray, epoch: int, settings: OrientSettings) -> Outcome:
         started = time.perf_counter()
         try:
             data = self._frame(look)
@@ -217,6 +217,9 @@ class Odometer:
             raise OrientFailed(failure, None, 0) from None
         belief = PlanarBelief(estimate, np.diag([START_SIGMA_M ** 2, START_SIGMA_M ** 2,
                                                  math.radians(START_SIGMA_DEG) ** 2]))
+        drift_sigma = settings.heading_drift_deg_per_m.of(look.sensor)
+        if drift_sigma > 0:         # the odometry's heading drift, learnt against the sun from here on
+            belief = with_drift(belief, math.radians(drift_sigma))
         self.keyframes += 1
         self.keyframe = Keyframe(look.sensor, epoch, data, belief, look.camera_to_rover, self.keyframes)
         self.reference = LastLook(np.eye(4), look.camera_to_rover, estimate)
@@ -251,10 +254,11 @@ class Odometer:
         except OdometryFailure:
             return
         dead_reckoned = key.belief.rover_to_world @ key.camera_to_rover @ guess @ invert(look.camera_to_rover)
-        lost = np.diag([settings.lost_sigma_m ** 2, settings.lost_sigma_m ** 2,
-                        math.radians(settings.lost_sigma_deg) ** 2])
+        lost = np.zeros_like(key.belief.covariance)      # the drift, if any, is the odometry's: it stays
+        lost[:3, :3] = np.diag([settings.lost_sigma_m ** 2, settings.lost_sigma_m ** 2,
+                                math.radians(settings.lost_sigma_deg) ** 2])
         belief = PlanarBelief(_level(RoverPose.from_matrix(dead_reckoned), look.roll, look.pitch),
-                              key.belief.covariance + lost)
+                              key.belief.covariance + lost, key.belief.drift)
         self.keyframes += 1
         self.keyframe = Keyframe(look.sensor, epoch, data, belief, look.camera_to_rover, self.keyframes)
         self.reference, self.last_look = LastLook(np.eye(4), look.camera_to_rover, estimate), None

@@ -23,7 +23,10 @@ def _belief(belief: PlanarBelief | None) -> dict[str, Any] | None:
     return {"x": pose.x, "y": pose.y, "z": pose.z, "heading_deg": math.degrees(pose.heading),
             "roll_deg": math.degrees(pose.roll), "pitch_deg": math.degrees(pose.pitch),
             "covariance_xy_heading": belief.covariance.tolist(), "sigma_xy_m": sigma_xy,
-            "sigma_heading_deg": math.degrees(sigma_heading)}
+            "sigma_heading_deg": math.degrees(sigma_heading),
+            **({"heading_drift_deg_per_m": math.degrees(belief.drift),
+                "sigma_drift_deg_per_m": math.degrees(math.sqrt(max(float(belief.covariance[3, 3]), 0.0)))}
+               if belief.drifts else {})}
 
 
 def _look(look: Look) -> dict[str, Any]:

@@ -11,6 +11,7 @@ Sensor = Literal["stereo", "tof"]
 Share = Annotated[float, Field(ge=0, le=1)]
 Tilt = Annotated[float, Field(ge=-80, le=10)]
 Positive = Annotated[float, Field(gt=0)]
+NonNegative = Annotated[float, Field(ge=0)]
 
 
 class OrientSettings(Settings):
@@ -46,6 +47,14 @@ class OrientSettings(Settings):
         "motion times this: the orient campaign (20 traverses per sensor, unsplit turns) found stereo's heading "
         "errors 2.5 times and TOF's 1.2 times what the fit's covariance said (median |error| / sigma 1.69 and 0.80 "
         "against a Gaussian's 0.67); believed, the sun's heading could not pull a stereo chain 0.25 deg off back")
+    heading_drift_deg_per_m: PerSensor[NonNegative] = Field(
+        PerSensor[NonNegative](stereo=0.02, tof=0.0), description="per sensor, the prior sigma of the odometry's "
+        "heading drift per metre driven, a state learnt against the sun (0: none). Stereo's heading errors run the "
+        "same way for tens of metres (about 0.01 deg a look on the orient campaign), which a filter of independent "
+        "motions mistakes for certainty")
+    heading_drift_walk: PerSensor[NonNegative] = Field(
+        PerSensor[NonNegative](stereo=0.0005, tof=0.0), description="per sensor, how much the drift may change, "
+        "deg per metre per root metre driven")
     # How far dead reckoning may be off since the last look (about 5 sigma of the drive error):
     # a measured motion farther from it is refused as diverged.
     wheels_m: float = Field(0.05, ge=0, description="position: this much ...")

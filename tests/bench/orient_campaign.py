@@ -1,7 +1,7 @@
 """Campaign: orient's visual odometry on seeded traverses, scored against the simulator's true pose.
 
     .venv/bin/python tests/bench/orient_campaign.py [--seeds 1..20] [--sensors stereo tof] [--jobs 2]
-        [--length 30] [--max-turn 15] [--results tests/bench/results/orient.jsonl] [--out /tmp/rvs-orient]
+        [--length 30] [--max-turn 15] [--label NAME] [--results tests/bench/results/orient.jsonl] [--out /tmp/rvs-orient]
     .venv/bin/python tests/bench/orient_campaign.py --report tests/bench/results/orient.jsonl
 
 Each finished run is appended to --results at once (clients/run_log.py: one JSON line with its seed,
@@ -293,6 +293,7 @@ def main() -> None:
     parser.add_argument("--look-before-drive", type=float, default=LOOK_BEFORE_DRIVE_DEG,
                         help="an unsplit turn larger than this (deg) gets a look before the forward drive")
     parser.add_argument("--jobs", type=int, default=2)
+    parser.add_argument("--label", help="names the code's revision in the runs' settings (a table of its own)")
     add_results_options(parser, RESULTS)
     parser.add_argument("--out", type=Path, default=Path("/tmp/rvs-orient"), help="the servers' work folders")
     parser.add_argument("--verbose", action="store_true", help="a line per look")
@@ -301,7 +302,8 @@ def main() -> None:
         return
     args.out.mkdir(parents=True, exist_ok=True)
     log = RunLog(args.results, {"length_m": args.length, "max_turn_deg": args.max_turn,
-                                "look_before_drive_deg": args.look_before_drive})
+                                "look_before_drive_deg": args.look_before_drive,
+                                **({"label": args.label} if args.label else {})})
     started = time.perf_counter()
     planned = [{"seed": seed, "sensor": sensor} for sensor in args.sensors for seed in args.seeds]
     tasks = log.todo(planned)
