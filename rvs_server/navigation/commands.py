@@ -126,7 +126,7 @@ class NavigationSettings(Settings):
     footprint_m: tuple[PositiveFloat, PositiveFloat] = Field((0.55, 0.50), description="the rover's footprint, "
                                                              "length x width, metres, for the drive-error cut")
     orient: PerSensor[bool] = Field(
-        PerSensor[bool](tof=False, stereo=False), description="per sensor (or one for both), each cycle begins "
+        PerSensor[bool](tof=False, stereo=True), description="per sensor (or one for both), each cycle begins "
         "with an orient look along the heading (visual odometry since the last cycle's, the sun's heading; "
         "orient.toml): the map alignment starts from it instead of dead reckoning; and the drives look every "
         "orient_step_m")

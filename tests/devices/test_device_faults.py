@@ -34,8 +34,8 @@ NAV_GOAL = "0.18,1.62"
 
 def navigation_toml() -> str:
     text = (REPO / "configs" / "navigation.toml").read_text()
-    for key, value in NARROW_PAN.items():
-        text, count = re.subn(rf"^{key} = \[[^\]]*\]", f"{key} = {value}", text, flags=re.M)
+    for key, value in {**NARROW_PAN, "orient": "false"}.items():   # orient's looks have tests of their own
+        text, count = re.subn(rf"^{key} = (\[[^\]]*\]|{{[^}}]*}})", f"{key} = {value}", text, flags=re.M)
         assert count == 1, key
     return text
 
