@@ -1,7 +1,8 @@
 """Campaign: orient's visual odometry on seeded traverses, scored against the simulator's true pose.
 
     .venv/bin/python tests/bench/orient_campaign.py [--seeds 1..20] [--sensors stereo tof] [--jobs 2]
-        [--length 30] [--max-turn 15] [--label NAME] [--results tests/bench/results/orient.jsonl] [--out /tmp/rvs-orient]
+        [--length 30] [--max-turn 15] [--label NAME] [--results tests/bench/results/orient.jsonl]
+        [--out /tmp/rvs-orient]
     .venv/bin/python tests/bench/orient_campaign.py --report tests/bench/results/orient.jsonl
 
 Each finished run is appended to --results at once (clients/run_log.py: one JSON line with its seed,
