@@ -367,6 +367,14 @@ def _merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
     return merged
 
 
+def override_config(config_dir: Path, name: str, over: dict[str, Any]) -> None:
+    """Set `over`'s keys in the configuration file `name` of `config_dir` (nested tables merged, the rest kept)."""
+    if Path(name).name != name or not name.endswith(".toml") or not (config_dir / name).is_file():
+        raise RunFailed(f"configs: {name!r} is not a configuration file of configs/")
+    merged = _merge(tomllib.loads((config_dir / name).read_text()), over)
+    (config_dir / name).write_text(dump_toml(merged) + "\n")
+
+
 class RecordingClient:
     """The mission runner's client: every final reply kept by its line's @TAG and command name."""
 
@@ -434,10 +442,7 @@ class Server:
         base = tomllib.loads((config_dir / "world.toml").read_text())
         (config_dir / "world.toml").write_text(dump_toml(_merge(_merge(base, world), run.get("world", {}))) + "\n")
         for name, over in run.get("configs", {}).items():     # a run's own settings, over the repository's
-            if Path(name).name != name or not name.endswith(".toml") or not (config_dir / name).is_file():
-                raise RunFailed(f"configs: {name!r} is not a configuration file of configs/")
-            merged = _merge(tomllib.loads((config_dir / name).read_text()), over)
-            (config_dir / name).write_text(dump_toml(merged) + "\n")
+            override_config(config_dir, name, over)
         self.data_dir = run_dir / "data"
         shutil.rmtree(self.data_dir, ignore_errors=True)   # a retry starts from nothing
         args = [sys.executable, "-m", "rvs_server", "--port", "0", "--zmq-port", "0", "--web-port", "0",

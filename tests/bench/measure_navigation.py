@@ -40,6 +40,7 @@ sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "tests" / "bench"))
 from navigation_scoring import scene_config, score_product, summarise, usable_scenes  # noqa: E402
 
+from clients.campaign import override_config  # noqa: E402
 from clients.run_log import RunLog, add_results_options, report, reported  # noqa: E402
 
 from conftest import ServerProcess, pairs  # noqa: E402
@@ -56,8 +57,7 @@ def run(seed: int, scene: dict, sensor: str, size: float, out: Path, sim_speed: 
     shutil.copytree(REPO / "configs", configs)
     cover = scene_config(seed, size)["rocks"]["cover"]
     (configs / "world.toml").write_text(f"seed = {seed}\nsize_m = [{size}, {size}]\n[rocks]\ncover = {cover}\n")
-    navigation = configs / "navigation.toml"
-    navigation.write_text(navigation.read_text().replace("orient = false", f"orient = {str(orient).lower()}"))
+    override_config(configs, "navigation.toml", {"orient": orient})   # for both sensors, whatever the default
     mapping = configs / "mapping.toml"
     mapping.write_text(mapping.read_text().replace('"../workflows"', json.dumps(str(REPO / "workflows"))))
     import conftest

@@ -27,6 +27,7 @@ from typing import Any
 
 import numpy as np
 
+from clients.campaign import override_config
 from drivers.sim.config import WorldConfig
 from drivers.sim.world import World
 from toolbox.grid import GridSpec
@@ -191,8 +192,7 @@ def configs_for(root: Path, seed: int, pose: tuple[float, float, float], sun: tu
     configs = root / "configs"
     shutil.rmtree(configs, ignore_errors=True)
     shutil.copytree(REPO / "configs", configs)
-    routes = configs / "routes.toml"
-    routes.write_text(routes.read_text().replace("orient = false", f"orient = {str(orient).lower()}"))
+    override_config(configs, "routes.toml", {"orient": orient})
     (configs / "world.toml").write_text(WORLD.format(seed=seed, size=SIZE_M, x=pose[0], y=pose[1], heading=pose[2],
                                                      azimuth=sun[0], elevation=sun[1]) + (TEACHER if teacher else ""))
     return configs
