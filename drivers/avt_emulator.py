@@ -151,7 +151,8 @@ class EmulatedCamera(Camera):
             with self._status_lock:   # lock order everywhere: _lock, then _status_lock
                 frame_number = self._frames + 1
                 self._state = "exposing"
-        scene = _SceneAtPulse(self.pose_at(at), self.world.sun, self.intrinsics(settings.resolution))
+        pose = self.pose_at(at)    # first: it brings a walking astronaut to where it was at the pulse
+        scene = _SceneAtPulse(pose, self.world.sun, self.intrinsics(settings.resolution), self.world.snapshot())
         exposure.triggered.set()
         threading.Thread(target=self._develop, args=(exposure, scene, settings, frame_number),
                          name=f"render {self.camera_id}", daemon=True).start()
@@ -160,7 +161,7 @@ class EmulatedCamera(Camera):
                  frame_number: int) -> None:
         try:
             rng = np.random.default_rng([self._seed, zlib.crc32(self.camera_id.encode()), frame_number])
-            image, exposure_us = expose_image(self.world, scene, settings, rng)
+            image, exposure_us = expose_image(scene, settings, rng)
             exposure.frame = Frame(image=image, camera_id=self.camera_id, role=self.role,
                                    timestamp_s=exposure.trigger_time, frame_number=frame_number,
                                    resolution=settings.resolution, pixel_format=settings.pixel_format,

@@ -37,17 +37,20 @@ DUST_TINT_FULL_ALBEDO = 0.35
 
 @dataclass(frozen=True)
 class _SceneAtPulse:
-    """What a camera sees at the instant of a pulse: its pose, the sun, its intrinsics."""
+    """What a camera sees at the instant of a pulse: its pose, the sun, its intrinsics, and the world
+    as it stood then (a snapshot: a walker moved while the frame renders is not in it, so both
+    cameras of a pair, rendered one after the other, see it at the same place)."""
 
     camera_to_world: np.ndarray
     sun: object
     camera: Intrinsics
+    world: World
 
 
-def expose_image(world: World, scene: _SceneAtPulse, settings: CameraSettings,
+def expose_image(scene: _SceneAtPulse, settings: CameraSettings,
                  rng: np.random.Generator) -> tuple[np.ndarray, float]:
     """Render the scene and turn radiance into an 8-bit image; return it and the exposure used."""
-    view = render(world, scene.camera_to_world, scene.camera, sun=scene.sun)
+    view = render(scene.world, scene.camera_to_world, scene.camera, sun=scene.sun)
     radiance = view.intensity
     exposure_us = auto_exposure_us(radiance, settings) if settings.auto_exposure else settings.exposure_us
     if settings.pixel_format == "rgb8":

@@ -166,9 +166,10 @@ class SimulatedTestbed:
 
     # -- poses and truth ------------------------------------------------------------------------
 
-    def sensor_pose(self, sensor: str) -> np.ndarray:
-        """The true camera-to-world pose of a sensor now (OpenCV camera frame)."""
-        self.update_obstacles()
+    def sensor_pose(self, sensor: str, at_s: float | None = None) -> np.ndarray:
+        """The true camera-to-world pose of a sensor now (OpenCV camera frame), a walking astronaut
+        brought to where it is at `at_s` (a trigger pulse's time; default now) for the sensor to see."""
+        self.update_obstacles(at_s)
         pan, tilt = self.ptu_angles()
         return self.rover.sensor_to_world(sensor, pan, tilt)
 
@@ -322,18 +323,19 @@ class SimulatedTestbed:
             self.walk = None if to is None else Walk(corners, speed, self.clock.now(), pause)
             return self._record(self.astronaut_id)
 
-    def update_obstacles(self) -> None:
-        """Bring a walking astronaut to where it is at the simulation clock's now (sensors ask for
-        their pose before each render; truth() before each record)."""
+    def update_obstacles(self, at_s: float | None = None) -> None:
+        """Bring a walking astronaut to where it is at clock time `at_s` (default now): sensors ask
+        for their pose before each render (the stereo pair with its pulse's time, so the second
+        camera sees the walker where the first did); truth() before each record."""
         walk = self.walk
         if walk is None or not self.ready:
             return
         with self._obstacles_lock:
             if self.walk is walk:
-                self._step(walk)
+                self._step(walk, at_s)
 
-    def _step(self, walk: Walk) -> None:
-        x, y, heading = walk.where(self.clock.now())
+    def _step(self, walk: Walk, at_s: float | None = None) -> None:
+        x, y, heading = walk.where(self.clock.now() if at_s is None else at_s)
         record = self._record(self.astronaut_id)
         if math.hypot(x - record["x"], y - record["y"]) >= WALK_STEP_M or heading != record["heading_rad"]:
             self.world.move_obstacle(self.astronaut_id, x, y, heading)

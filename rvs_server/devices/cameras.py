@@ -75,8 +75,8 @@ class StereoDevice(SensorDevice):
         trigger = PpdevTrigger(c.trigger_port, clock=self.clock) if c.trigger_backend == "ppdev" else None
         if c.backend == "sim":
             testbed = self.testbed
-            pair = emulated_stereo_pair(testbed.world, lambda t: testbed.sensor_pose("left"),
-                                        lambda t: testbed.sensor_pose("right"), clock=self.clock,
+            pair = emulated_stereo_pair(testbed.world, lambda t: testbed.sensor_pose("left", t),
+                                        lambda t: testbed.sensor_pose("right", t), clock=self.clock,
                                         trigger=trigger, seed=c.seed, default_settings=settings,
                                         faults=testbed.faults)
         else:

@@ -124,8 +124,8 @@ class Bench:
         testbed, grabs = self.testbed, self.grab_s
         devices_toml = tomllib.loads((CONFIGS / "devices.toml").read_text())["cameras"]
         resolution = devices_toml.get("resolution", "medium")
-        pair = emulated_stereo_pair(testbed.world, lambda t: testbed.sensor_pose("left"),
-                                    lambda t: testbed.sensor_pose("right"), clock=self.clock, seed=seed,
+        pair = emulated_stereo_pair(testbed.world, lambda t: testbed.sensor_pose("left", t),
+                                    lambda t: testbed.sensor_pose("right", t), clock=self.clock, seed=seed,
                                     default_settings=CameraSettings(resolution=resolution), faults=testbed.faults)
         pair.open()
 
