@@ -24,6 +24,7 @@ import numpy as np
 
 from rvs_server.activities import Activity
 from toolbox.tracking.detect import Candidate, candidates
+from toolbox.tracking.ground import GroundTrail
 from toolbox.tracking.kalman import Track
 from toolbox.tracking.standing import Plane
 
@@ -35,7 +36,6 @@ if TYPE_CHECKING:
     from rvs_server.host import Host
 
 PICTURE_POINTS = 200_000     # the ground the picture shows: a sample of every frame's points
-GROUND_SMOOTHING = 0.3       # the target's ground height follows each measured one by this share
 NEAR_GROUND_M = 6.0          # within this the ground round a person's feet is seen well (its height learnt)
 HEIGHT_FRAMES = 50           # the person's height: the median of this many near frames
 FEET_HIDDEN_M = 0.1          # the feet's ground this far from the head's top less the height: hidden
@@ -77,6 +77,7 @@ class TrackActivity(Activity):
         self.track.seen_s = max(target.sim_s, server.clock.now())   # coasting counts from the start
         self.locked = False
         self.ground_z = target.z
+        self._ground_trail = GroundTrail()         # the ground measured under the target, where it walked
         # The search's height seeds the person's height only where it is a whole grown person's seen
         # near, as a frame's is learnt: a search at range may have had the head above its view (a
         # 1.44 m "person" 1.80 m tall made every later frame's ground 0.35 m high, the feet's ground
@@ -154,6 +155,12 @@ class TrackActivity(Activity):
         confirmed = self._confirmed(seen, people)
         if not self.lost:
             track.predict(seen.sim_s)
+            if not self._looks_at(seen, track.position):
+                # Still turning from the search's last view to where it saw the target: what this
+                # frame sees is elsewhere (a boulder passed on the way took the track: TOF seed 417),
+                # and the time to find it there counts from when the unit looks there.
+                track.seen_s = seen.sim_s
+                return None
             chosen = self._nearest_in_gate(seen, confirmed)
             if chosen is not None:
                 track.update(chosen.xy, self._measurement_cov(seen, chosen))
@@ -201,6 +208,11 @@ class TrackActivity(Activity):
         return [c for c in people
                 if any(np.linalg.norm(c.xy - xy) <= CONFIRM_M + speed * (seen.sim_s - t) for t, xy in before)]
 
+    def _looks_at(self, seen: Seen, xy: np.ndarray) -> bool:
+        """Whether the frame's view takes in the place xy (its bearing within the field of view)."""
+        bearing, _ = self.sight.bearing_range(seen.pose, xy)
+        return abs((bearing - seen.pan_deg + 180.0) % 360.0 - 180.0) <= self.sight.half_fov_deg[0]
+
     def _beyond_range(self, seen: Seen) -> bool:
         """The unseen target's prediction has left the sensor's range: no frame can confirm it there,
         and coasting on follows only an extrapolation (the campaign's walkers stood still out there,
@@ -228,7 +240,11 @@ class TrackActivity(Activity):
             from_top = top[2] - float(np.median(self._heights[-HEIGHT_FRAMES:]))
             if abs(measured - from_top) > FEET_HIDDEN_M:
                 measured = from_top
-        self.ground_z += GROUND_SMOOTHING * (measured - self.ground_z)
+        # The ground as a function of place (a local plane over where the target walked), not a
+        # running average over time, which lagged on slopes by the distance walked over its memory.
+        self._ground_trail.add(shape.x, shape.y, measured, seen.sim_s)
+        height = self._ground_trail.height_at(shape.x, shape.y, slope=(seen.plane.gx, seen.plane.gy))
+        self.ground_z = measured if height is None else height
 
     def _measurement_cov(self, seen: Seen, candidate: Candidate) -> np.ndarray:
         sigma = self.settings.sigma_m(self.sensor, candidate.range_from(seen.sensor_xy))
