@@ -66,9 +66,11 @@ RESULTS = Path(__file__).resolve().parent / "results" / "track.jsonl"
 # "stereo-noise" finds a stereo frame's ground from cell medians and stands points clear of its noise;
 # "stereo-legs" judges stereo clusters by a legs-to-torso limit of its own (0.92-1.02); "reach" learns
 # the height only from a search within 6 m and takes a person outside the gate within a walker's reach.
-# "pulse-world": the same tracker, with the emulated stereo pair rendering the walker where it was at the
-# trigger pulse in both cameras (before, the right camera saw it up to a few cm further on).
-TRACKER = "pulse-world"
+# "plane-ground": the emulated stereo pair renders the walker where it was at the trigger pulse in both
+# cameras (before, the right camera saw it up to a few cm further on); the target's ground is a local
+# plane over where it walked (not a running average); acquisition waits until the view holds the
+# search's sighting (a boulder passed while the unit turned there took the track).
+TRACKER = "plane-ground"
 
 
 def world_toml(seed: int) -> str:
