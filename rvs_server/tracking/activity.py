@@ -84,6 +84,7 @@ class TrackActivity(Activity):
         # taken for hidden), and a stereo search at 7.6 m read the ground 0.22 m high (1.53 m tall).
         whole = self.model.height(target.height) >= 1.0 and target.range_m <= NEAR_GROUND_M
         self._heights: list[float] = [target.height] if whole else []
+        self._far_heights: list[float] = []        # whole grown-person heights seen beyond NEAR_GROUND_M
         self._last_xy: np.ndarray | None = None   # where the target was last measured
         self.lost = False
         self._lost_s = -math.inf                  # when it was lost (simulation seconds)
@@ -227,17 +228,24 @@ class TrackActivity(Activity):
     def _ground(self, chosen: Candidate, seen: Seen) -> None:
         """The target's ground height: the ground its feet stand on (toolbox/tracking/standing.py
         step 5). Where that disagrees with the top of the head less the person's height (learnt near,
-        where the ground is seen well) by more than FEET_HIDDEN_M, the feet are hidden (a rock before
-        them: the lowest points seen are a leg's) and the top less the height stands in."""
+        where the ground is seen well, or until then farther out) by more than FEET_HIDDEN_M, the feet
+        are hidden (a rock before them: the lowest points seen are a leg's) and the top less the
+        height stands in."""
         shape = chosen.shape
         top = np.array([shape.x, shape.y, shape.ground_z + shape.height])
         whole = self.sight.sees_top_of(seen, top)
         near = chosen.range_from(seen.sensor_xy) <= NEAR_GROUND_M
         if whole and near:
             self._heights.append(shape.height)
+        elif whole and self.model.height(shape.height) >= 1.0:
+            # Farther out a grown person's height stands in until one is seen near: a walker who
+            # stays beyond 6 m had no height at all, and a frame with its feet hidden read the
+            # ground at its legs (0.45 m high: TOF seed 407 coming out from behind the boulder).
+            self._far_heights.append(shape.height)
         measured = shape.ground_z
-        if whole and self._heights:
-            from_top = top[2] - float(np.median(self._heights[-HEIGHT_FRAMES:]))
+        heights = self._heights or self._far_heights
+        if whole and heights:
+            from_top = top[2] - float(np.median(heights[-HEIGHT_FRAMES:]))
             if abs(measured - from_top) > FEET_HIDDEN_M:
                 measured = from_top
         # The ground as a function of place (a local plane over where the target walked), not a

@@ -69,8 +69,9 @@ RESULTS = Path(__file__).resolve().parent / "results" / "track.jsonl"
 # "plane-ground": the emulated stereo pair renders the walker where it was at the trigger pulse in both
 # cameras (before, the right camera saw it up to a few cm further on); the target's ground is a local
 # plane over where it walked (not a running average); acquisition waits until the view holds the
-# search's sighting (a boulder passed while the unit turned there took the track).
-TRACKER = "plane-ground"
+# search's sighting (a boulder passed while the unit turned there took the track). "far-height": beyond
+# 6 m too, a whole grown person's height stands in for the hidden-feet rule until one is seen near.
+TRACKER = "far-height"
 
 
 def world_toml(seed: int) -> str:
