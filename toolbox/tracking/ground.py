@@ -1,7 +1,7 @@
 """The ground under a walking target, from the ground heights measured under its feet frame by frame.
 
 A running average over time lags on a slope by the slope times the distance walked over the
-average's memory (0.3 per frame at 10 Hz and 1.5 m/s: a 10 % slope read 4-5 cm behind), and the
+average's memory (0.3 per frame at 10 Hz and 1.5 m/s: a 10 % slope read 3-4 cm behind), and the
 lag has the walk's sign, so it does not average out. The ground is a function of place, not of
 time: each estimate here is a local plane fitted to the recent samples weighted by their distance
 from the query place (locally weighted regression), its slope held towards a prior (the rover's own
@@ -39,9 +39,6 @@ class GroundTrail:
         self._samples.append((float(x), float(y), float(z), float(time_s)))
         while self._samples and time_s - self._samples[0][3] > self.params.memory_s:
             self._samples.popleft()
-
-    def clear(self) -> None:
-        self._samples.clear()
 
     def height_at(self, x: float, y: float, slope: tuple[float, float] = (0.0, 0.0)) -> float | None:
         """The ground height at (x, y); `slope` (dz/dx, dz/dy) is the prior the fit leans to. None
