@@ -3,6 +3,7 @@ from __future__ import annotations
 
 from typing import Annotated, Literal
 
+import numpy as np
 from pydantic import Field
 
 from rvs_server.config import PerSensor, Range, Settings
@@ -44,8 +45,13 @@ class TrackingSettings(Settings):
         "low", description="the cameras' mode for tracking frames (low: 4 x 4 binning), given back after each")
     stereo_disparities: int = Field(64, ge=16, le=256, multiple_of=16)
     tof_sigma_m: float = Field(0.04, gt=0, description="1 sigma of one TOF frame's centre, per axis")
-    stereo_sigma_m: float = Field(0.04, gt=0, description="1 sigma of one stereo frame's centre at 1 m ...")
-    stereo_sigma_per_m2: float = Field(0.003, ge=0, description="... plus this times the range squared")
+    stereo_sigma_m: float = Field(0.04, gt=0, description="1 sigma of one stereo frame's centre along the line "
+                                  "of sight at 1 m ...")
+    stereo_sigma_per_m2: float = Field(0.003, ge=0, description="... plus this times the range squared (the "
+                                       "range from disparity)")
+    stereo_across_sigma_m: float = Field(0.03, gt=0, description="1 sigma of one stereo frame's centre across "
+                                         "the line of sight (from the image position: 1.5-4.5 cm measured at "
+                                         "5-8 m)")
     stereo_ground_noise_per_m2: float = Field(0.0025, ge=0, description="1 sigma of a stereo ground point's "
                                               "height per squared metre of range (4 x 4 binned: 0.14 m at 7.5 m; "
                                               "the ground is then found from medians and a point stands once "
@@ -59,6 +65,16 @@ class TrackingSettings(Settings):
                                         "boulders of person height 0.99-1.50, all but one over 1.02; the "
                                         "SR4000's model keeps 0.85-1.0)")
     # -- following ----------------------------------------------------------------------------
+    centre_from_heading: PerSensor[bool] = Field(
+        PerSensor[bool](tof=False, stereo=True), description="per sensor, while the target walks (see "
+        "heading_min_speed_m_s) its centre lies behind the face the sensor sees by what the walk's heading says "
+        "of how it is turned, not its measured width (the stereo matcher widens legs by 2-3 pixels a side: a "
+        "side-on walker read as facing, 5-8 cm short; the SR4000 measures widths well)")
+    shape_height_sigma_m: float = Field(0.05, gt=0, le=2, description="a frame whose person stands this much "
+                                        "taller or shorter than the target's height counts as a measurement "
+                                        "(1 + (difference / this)^2) times less sure")
+    heading_min_speed_m_s: float = Field(0.3, ge=0, le=5, description="the track's speed above which its "
+                                         "velocity is taken as the walker's heading")
     track_confidence: float = Field(0.3, ge=0, le=1, description="a cluster in the gate this person-like is the "
                                     "target (lower than found_confidence: a rock may hide its legs)")
     reacquire_confidence: float = Field(0.6, gt=0, le=1, description="once lost, a person this person-like "
@@ -94,6 +110,19 @@ class TrackingSettings(Settings):
         return TrackParams(q=self.acceleration_density, max_coast_s=self.max_coast_s, min_gate_m=self.min_gate_m)
 
     def sigma_m(self, sensor: str, range_m: float) -> float:
+        """1 sigma of one frame's centre along the line of sight at `range_m`."""
         if sensor == "tof":
             return self.tof_sigma_m
         return self.stereo_sigma_m + self.stereo_sigma_per_m2 * range_m ** 2
+
+    def measurement_cov(self, sensor: str, offset: np.ndarray) -> np.ndarray:
+        """The (2, 2) world covariance of one frame's centre at `offset` (world x, y) from the sensor:
+        the stereo pair measures the range from disparity, far less surely than the bearing."""
+        offset = np.asarray(offset, dtype=float)
+        range_m = float(np.linalg.norm(offset))
+        along = self.sigma_m(sensor, range_m)
+        if sensor == "tof" or range_m < 1e-6:
+            return np.eye(2) * along ** 2
+        sight = offset / range_m
+        across = np.array([-sight[1], sight[0]])
+        return along ** 2 * np.outer(sight, sight) + self.stereo_across_sigma_m ** 2 * np.outer(across, across)

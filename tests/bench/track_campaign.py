@@ -71,7 +71,12 @@ RESULTS = Path(__file__).resolve().parent / "results" / "track.jsonl"
 # plane over where it walked (not a running average); acquisition waits until the view holds the
 # search's sighting (a boulder passed while the unit turned there took the track). "far-height": beyond
 # 6 m too, a whole grown person's height stands in for the hidden-feet rule until one is seen near.
-TRACKER = "far-height"
+# "exposure-heading": a frame is placed with the PTU angles of its exposure (a stereo pair exposes at
+# the start of its grab; the mean of the readings put a turning head 0.4-1 degree off); while the
+# target walks, stereo takes its centre behind the face it sees from the walk's heading, not from the
+# legs' width (which the matcher widens); the stereo covariance is sure across the line of sight and
+# unsure along it, and a frame whose person reads taller or shorter than the target counts less.
+TRACKER = "exposure-heading"
 
 
 def world_toml(seed: int) -> str:

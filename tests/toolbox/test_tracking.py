@@ -118,3 +118,27 @@ def test_the_filter_follows_a_walker_and_its_gate_keeps_a_boulder_out(rng):
     assert np.linalg.norm(track.position - truth(7.0)) < 0.3 and not track.lost
     track.predict(8.2)
     assert track.lost
+
+
+def side_on_figure(rng, centre=(6.0, 0.0), widen=0.0):
+    """A person walking along +y seen from the origin: the near leg hides the far one, its side 0.2 m
+    across; `widen` adds what a stereo matcher smears beyond each edge of the legs."""
+    x, y = centre
+    parts = [box_surface(rng, (x - 0.1, y), 0.20 + 2 * widen, 0.15, 0.0, 0.86, 900),
+             box_surface(rng, (x, y), 0.30, 0.50, 0.83, 1.44, 1500),
+             box_surface(rng, (x, y), 0.28, 0.26, 1.44, 1.80, 500)]
+    return np.concatenate(parts)
+
+
+def test_a_walkers_heading_places_its_centre_where_widened_legs_would_read_it_as_facing(rng):
+    from toolbox.tracking.person import centre_facing
+    plane = Plane(0.0, 0.0, 0.0, 0.0, 0.0)
+    sharp = candidates(np.concatenate([ground(rng, (6, 0)), side_on_figure(rng)]), np.zeros(2), plane)[0]
+    assert math.dist(sharp.xy, (6.0, 0.0)) < 0.03, sharp.xy          # the width told it side-on
+    smeared = candidates(np.concatenate([ground(rng, (6, 0)), side_on_figure(rng, widen=0.06)]), np.zeros(2),
+                         plane)[0]
+    assert smeared.xy[0] < 5.96, smeared.xy                           # 0.32 m wide: read as half turned, 5 cm short
+    assert centre_facing(smeared.shape, np.array([0.0, 0.8])) == pytest.approx([6.0, 0.0], abs=0.03)
+    # walking away, the legs side by side: their face lies half a leg's depth before the centre
+    away = candidates(np.concatenate([ground(rng, (5, 0)), figure(rng)]), np.zeros(2), plane)[0]
+    assert centre_facing(away.shape, np.array([1.2, 0.0])) == pytest.approx([5.0, 0.0], abs=0.03)

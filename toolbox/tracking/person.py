@@ -16,7 +16,11 @@ Across the line of sight the centre is the middle of the legs band's extent; alo
 that band's points plus the depth of the legs behind their visible face, which depends on how the
 person is turned, and the measured width says that: legs W wide and D deep seen facing show W
 across and their face lies D/2 before the centre, side-on they show D across and lie W/2 before;
-between, the offset is taken as linear in the width. The legs, not the torso: what a person carries
+between, the offset is taken as linear in the width (`shape_of`). Where the width is not measured
+well (a stereo matcher widens a 0.2 m leg by 2-3 pixels each side, 5-8 cm at 6 m, which read a
+side-on walker as facing: 5-8 cm short), the walk's heading says how the person is turned: the
+nearest face of a W x D box turned by theta from the line of sight lies D/2 |cos theta| +
+W/2 |sin theta| before its centre (`centre_facing`). The legs, not the torso: what a person carries
 (an astronaut's backpack) is not where it stands, and a torso band's middle would follow it. Where
 the legs are hidden (a rock before them), the torso band serves the same way, with the body's size.
 """
@@ -76,6 +80,9 @@ class Shape:
     x: float                     # the estimated centre of the body, world
     y: float
     ground_z: float
+    face: tuple[float, float] = (math.nan, math.nan)   # the middle of the visible face of `part`, world x, y
+    sight: tuple[float, float] = (1.0, 0.0)            # unit, world: from the sensor to the body
+    part: str = "legs"           # the band the centre was taken from: legs, or torso where they were hidden
 
     def fields(self) -> dict[str, float]:
         return {"height_m": self.height, "torso_width_m": self.torso_width, "legs_width_m": self.legs_width,
@@ -121,9 +128,23 @@ def shape_of(cluster: Cluster, sensor_xy: np.ndarray, model: PersonModel = Perso
         part, part_width, part_depth = torso, model.body_width, model.body_depth
     low, high = np.percentile(lateral[part], EXTENT_PERCENTILES)
     behind = float(np.clip((part_width + part_depth) / 2 - (high - low) / 2, part_depth / 2, part_width / 2))
-    centre = middle + across * (low + high) / 2 + sight * (float(np.median(radial[part])) + behind)
+    face = middle + across * (low + high) / 2 + sight * float(np.median(radial[part]))
+    centre = face + sight * behind
     return Shape(height, width, extent(legs), extent(band("head")), len(points),
-                 float(centre[0]), float(centre[1]), cluster.ground_z)
+                 float(centre[0]), float(centre[1]), cluster.ground_z, (float(face[0]), float(face[1])),
+                 (float(sight[0]), float(sight[1])), "legs" if part is legs else "torso")
+
+
+def centre_facing(shape: Shape, heading: np.ndarray, model: PersonModel = PersonModel()) -> np.ndarray:
+    """The body's centre (world x, y) from its visible face and the direction it faces or walks
+    (`heading`, world, any length), instead of from its measured width."""
+    width, depth = (model.legs_width, model.legs_depth) if shape.part == "legs" else \
+        (model.body_width, model.body_depth)
+    h = np.asarray(heading, dtype=float) / max(float(np.linalg.norm(heading)), 1e-9)
+    sight = np.asarray(shape.sight, dtype=float)
+    along = abs(float(sight @ h))
+    behind = depth / 2 * along + width / 2 * math.sqrt(max(0.0, 1.0 - along ** 2))
+    return np.asarray(shape.face, dtype=float) + sight * behind
 
 
 def person_confidence(shape: Shape, model: PersonModel = PersonModel()) -> tuple[float, dict[str, float]]:
