@@ -189,13 +189,14 @@ class PtuEmulator:
 
     # -- ground truth ---------------------------------------------------------------------------
 
-    def true_positions(self) -> tuple[float, float]:
+    def true_positions(self, at_s: float | None = None) -> tuple[float, float]:
+        """Where the axes truly stand (positions) at clock time `at_s`, default now."""
         with self._lock:
-            now = self._clock.now()
-            return self.pan.state(now)[0], self.tilt.state(now)[0]
+            t = self._clock.now() if at_s is None else at_s
+            return self.pan.state(t)[0], self.tilt.state(t)[0]
 
-    def true_angles_deg(self) -> tuple[float, float]:
-        pan, tilt = self.true_positions()
+    def true_angles_deg(self, at_s: float | None = None) -> tuple[float, float]:
+        pan, tilt = self.true_positions(at_s)
         return (pan * self.pan.resolution_arcsec / ARCSEC_PER_DEGREE,
                 tilt * self.tilt.resolution_arcsec / ARCSEC_PER_DEGREE)
 

@@ -94,8 +94,8 @@ class SimulatedTestbed:
         self._lock = threading.Lock()
         self._builder: threading.Thread | None = None
         self._build_error: BaseException | None = None
-        # Set by the PTU device: the unit's true (pan, tilt) in degrees right now.
-        self.ptu_angles: Callable[[], tuple[float, float]] = lambda: (0.0, 0.0)
+        # Set by the PTU device: the unit's true (pan, tilt) in degrees at a clock time (default now).
+        self.ptu_angles: Callable[..., tuple[float, float]] = lambda at_s=None: (0.0, 0.0)
         # Broken hardware switched on by `sim-fault`; every emulator made on this bed asks its switch.
         self.faults = InjectedFaults()
         # The one astronaut `astronaut` puts in the world: its obstacle id, and its walk if it walks.
@@ -370,9 +370,10 @@ class SimulatedTestbed:
         hit, _ = self.world.surface.cast(rays.astype(np.float32))
         reach = math.hypot(record.get("width_m", 0.5), record.get("depth_m", 0.3)) / 2 + 0.05
         unblocked = hit >= distance - reach             # the first hit is the person's own near side
+        pan, tilt = self.ptu_angles(at_s)
         return {"id": record["id"], "x": x, "y": y, "z": ground, "heading_rad": record["heading_rad"],
                 "height_m": height, "visible": float(np.mean(in_view & unblocked)),
-                "range_m": float(math.hypot(x - origin[0], y - origin[1]))}
+                "range_m": float(math.hypot(x - origin[0], y - origin[1])), "pan_deg": pan, "tilt_deg": tilt}
 
     def _record(self, obstacle_id: int) -> dict:
         return next(o for o in self.world.obstacles() if o["id"] == obstacle_id)

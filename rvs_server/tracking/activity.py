@@ -96,6 +96,7 @@ class TrackActivity(Activity):
         self._picture: list[np.ndarray] = []
         self._picture_count = 0
         self.sensor_xy = np.array([target.x, target.y])
+        self._ptu_speed_deg_s: float | None = None     # the speed the PTU was last set to, by this activity
 
     def start(self) -> None:
         self.server.devices.sharing.claim("ptu", self.kind)
@@ -107,7 +108,7 @@ class TrackActivity(Activity):
         with devices.sharing.borrow("ptu", self.sight.frames.device) as busy:
             if busy is not None:
                 return self.unknown(seq, f"a job holds the {busy}")
-            grabbed = self.sight.grab(devices)
+            grabbed = self.sight.grab(devices, self._ptu_speed_deg_s)
         seen = self.sight.seen(grabbed)
         found = candidates(seen.points, seen.sensor_xy, self._fallback_plane(seen), self.settings.standing(self.sensor),
                            self.model)
@@ -320,6 +321,7 @@ class TrackActivity(Activity):
             speed = float(np.clip(off / (STEER_SHARE * period), max(low_speed, 2.0), min(high_speed,
                                                                                settings.max_ptu_speed_deg_s)))
             driver.move_to(pan, tilt, speed_deg_s=speed)
+            self._ptu_speed_deg_s = speed
         return f"{pan:.2f},{tilt:.2f}@{speed:.0f}"
 
     def _look_around(self, devices: Any, seen: Seen) -> str:
@@ -341,6 +343,7 @@ class TrackActivity(Activity):
                 return "busy"
             driver = devices.ptu.ready_driver()
             driver.move_to(self._sweep_to, tilt, speed_deg_s=settings.lost_sweep_speed_deg_s)
+            self._ptu_speed_deg_s = settings.lost_sweep_speed_deg_s
         return f"sweep {self._sweep_to:.0f},{tilt:.0f}@{settings.lost_sweep_speed_deg_s:.0f}"
 
     def _record(self, seq: int, seen: Seen, chosen: Candidate | None, count: int, command: str) -> TrackRecord:

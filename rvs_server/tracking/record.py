@@ -186,16 +186,17 @@ class TrackRecord:
         return [self.seq, f"{self.sim_s:.3f}", self.state, int(self.seen), _f(self.x), _f(self.y), _f(self.z),
                 _f(self.vx), _f(self.vy), _f(self.sigma_m), _f(self.range_m), _f(self.bearing_deg, 2),
                 _f(self.confidence), *(_f(v) for v in (self.measured or (math.nan,) * 4)),
-                _f(self.pan_deg, 2), _f(self.tilt_deg, 2), self.ptu_command,
+                _f(self.pan_deg, 3), _f(self.tilt_deg, 3), self.ptu_command,
                 _f(self.grab_ms, 1), _f(self.process_ms, 1), self.candidates, self.best, self.reason,
-                _f(t.get("x")), _f(t.get("y")), _f(t.get("z")), _f(t.get("visible"), 3)]
+                _f(t.get("x")), _f(t.get("y")), _f(t.get("z")), _f(t.get("visible"), 3),
+                _f(t.get("pan_deg"), 3), _f(t.get("tilt_deg"), 3)]
 
 
 TRACK_HEADER = ["seq", "sim_s", "state", "seen", "x", "y", "z", "vx", "vy", "sigma_m", "range_m", "bearing_deg",
                 "confidence", "measured_x", "measured_y", "measured_z", "measured_height_m",
                 "pan_deg", "tilt_deg", "ptu_command", "grab_ms", "process_ms", "candidates",
                 "best_candidate", "reason",
-                "true_x", "true_y", "true_z", "true_visible"]
+                "true_x", "true_y", "true_z", "true_visible", "true_pan_deg", "true_tilt_deg"]
 
 
 def write_track(product: Any, records: list[TrackRecord], points: np.ndarray, sensor_xy: np.ndarray,

@@ -92,10 +92,11 @@ class Sight:
         axis = pose.to_world() @ np.array([*self.mount.ptu_position, 1.0])
         return pan, float(math.hypot(xy[0] - axis[0], xy[1] - axis[1]))
 
-    def grab(self, devices: Any) -> tuple[Any, RoverPose, float, float, float, dict | None, float]:
+    def grab(self, devices: Any, ptu_speed_deg_s: float | None = None
+             ) -> tuple[Any, RoverPose, float, float, float, dict | None, float]:
         """One frame where the PTU stands, with the devices held: the PTU read before and after the
         grab and the angles of the frame's exposure taken between them (the tracker may have the unit
-        still turning), the rover's estimate with the inclinometer's attitude of the instant, the
+        still turning, at `ptu_speed_deg_s`, the speed it last set), the rover's estimate with the inclinometer's attitude of the instant, the
         frame's own time (the middle of its exposure, not when it was asked for) and the truth at that
         time (simulated)."""
         rover = devices.rover
@@ -110,7 +111,7 @@ class Sight:
         shown = self.frames.timestamp(frame)
         sim_s = self.server.clock.now() if shown is None else shown
         truth = self._truth(devices, sim_s)
-        pan, tilt = angles_at(before, after, sim_s)
+        pan, tilt = angles_at(before, after, sim_s, ptu_speed_deg_s)
         return frame, pose, pan, tilt, sim_s, truth, (time.perf_counter() - started) * 1000.0
 
     def _read_ptu(self, devices: Any) -> tuple[float, float, float]:
@@ -138,14 +139,28 @@ class Sight:
 
 
 def angles_at(before: tuple[float, float, float], after: tuple[float, float, float],
-              at_s: float) -> tuple[float, float]:
-    """PTU (pan, tilt) at clock time `at_s`, linear between two timed readings (pan, tilt, time) and
-    held at either end. A stereo pair exposes at its trigger pulse, at the start of a grab whose
-    read-out takes 0.1-0.3 s: the mean of the two readings put a turning head (6-10 deg/s while
-    following a walker) 0.4-1 degree off, 5-10 cm across the line of sight at 6 m."""
+              at_s: float, speed_deg_s: float | None = None) -> tuple[float, float]:
+    """PTU (pan, tilt) at clock time `at_s` from two timed readings (pan, tilt, time) around it.
+
+    A stereo pair exposes at its trigger pulse, at the start of a grab whose read-out takes 0.1-0.3 s,
+    and a TOF frame in the middle of its ~60 ms: the mean of the two readings put a turning head 0.4-1
+    degree off. With the speed the unit was last set to (the tracker's own command), each axis runs
+    from the reading before at that speed until it stands where the reading after found it: a
+    2-degree hop at 47 deg/s is over in 40 ms of a 60 ms grab, and straight-line interpolation put
+    the TOF frames exposed during it 0.3-0.6 degree behind. An axis that moved farther than that
+    speed allows (unknown, or changed in the grab) is taken on the straight line; either way the
+    angles are held at the nearer reading outside the two."""
     span = after[2] - before[2]
     share = 0.5 if span <= 0 else min(1.0, max(0.0, (at_s - before[2]) / span))
-    return (before[0] + share * (after[0] - before[0]), before[1] + share * (after[1] - before[1]))
+    elapsed = share * max(span, 0.0)
+    angles = []
+    for axis in (0, 1):
+        moved = after[axis] - before[axis]
+        if speed_deg_s is not None and span > 0 and abs(moved) <= speed_deg_s * span * 1.05:
+            angles.append(before[axis] + math.copysign(min(abs(moved), speed_deg_s * elapsed), moved))
+        else:
+            angles.append(before[axis] + share * moved)
+    return angles[0], angles[1]
 
 
 def optical_axis(pan_deg: float, tilt_deg: float) -> np.ndarray:

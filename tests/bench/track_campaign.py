@@ -79,7 +79,7 @@ RESULTS = Path(__file__).resolve().parent / "results" / "track.jsonl"
 # "height-gate": the gate is the sensor's own (a widened covariance let a wrong cluster in), a restart
 # wants a person near the target's height, only a grown person's height is learnt (near too), and the
 # stereo filter's white acceleration is 2.0 (its 5 Hz, range-noisy frames lagged a fast walker's turns).
-TRACKER = "height-gate"
+TRACKER = "ptu-speed"
 
 
 def world_toml(seed: int) -> str:
