@@ -79,7 +79,10 @@ RESULTS = Path(__file__).resolve().parent / "results" / "track.jsonl"
 # "height-gate": the gate is the sensor's own (a widened covariance let a wrong cluster in), a restart
 # wants a person near the target's height, only a grown person's height is learnt (near too), and the
 # stereo filter's white acceleration is 2.0 (its 5 Hz, range-noisy frames lagged a fast walker's turns).
-TRACKER = "ptu-speed"
+# "ptu-speed": a frame exposed in a PTU hop takes the unit's set speed between the two readings.
+# "upper-legs": while it follows a person, a cluster of the target's height whose legs alone fail is
+# judged by the legs above the knees (a low rock at the walker's feet joined the cluster).
+TRACKER = "upper-legs"
 
 
 def world_toml(seed: int) -> str:

@@ -142,3 +142,21 @@ def test_a_walkers_heading_places_its_centre_where_widened_legs_would_read_it_as
     # walking away, the legs side by side: their face lies half a leg's depth before the centre
     away = candidates(np.concatenate([ground(rng, (5, 0)), figure(rng)]), np.zeros(2), plane)[0]
     assert centre_facing(away.shape, np.array([1.2, 0.0])) == pytest.approx([5.0, 0.0], abs=0.03)
+
+
+def test_a_low_rock_at_a_persons_feet_widens_its_legs_and_the_legs_above_the_knees_are_clear_of_it(rng):
+    from toolbox.tracking.detect import above_the_feet
+    from toolbox.tracking.person import PersonModel, Trapezoid
+    stereo = PersonModel(legs_to_torso=Trapezoid(0.0, 0.0, 0.92, 1.02))
+    plane = Plane(0.0, 0.0, 0.0, 0.0, 0.0)
+    rock = box_surface(rng, (5.0, -0.3), 0.35, 0.35, 0.0, 0.35, 800)     # beside the right leg, 0.35 m tall
+    cloud = np.concatenate([ground(rng, (5, 0)), figure(rng), rock])
+    merged = candidates(cloud, np.zeros(2), plane, model=stereo)[0]
+    assert merged.terms["legs_to_torso"] == 0.0 and merged.confidence == 0.0, merged.terms
+    assert merged.xy[1] < -0.05, merged.xy                               # its middle pulled towards the rock
+    clear = above_the_feet(merged, np.zeros(2), stereo)
+    assert clear.confidence > 0.9, clear.terms
+    assert math.dist(clear.xy, (5.0, 0.0)) < 0.06, clear.xy
+    # a boulder of a person's height stays wide above its foot too: no person there either
+    lone = candidates(np.concatenate([ground(rng, (5, 0)), boulder(rng)]), np.zeros(2), plane, model=stereo)[0]
+    assert above_the_feet(lone, np.zeros(2), stereo).confidence == 0.0

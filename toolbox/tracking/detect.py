@@ -6,8 +6,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .person import PersonModel, Shape, person_confidence, shape_of
-from .standing import Plane, StandingParams, ground_of, standing_clusters
+from .person import UPPER_LEGS, PersonModel, Shape, person_confidence, shape_of
+from .standing import Cluster, Plane, StandingParams, ground_of, standing_clusters
 
 
 @dataclass(frozen=True)
@@ -37,3 +37,12 @@ def candidates(points: np.ndarray, sensor_xy: np.ndarray, plane: Plane,
         confidence, terms = person_confidence(shape, model)
         found.append(Candidate(shape, confidence, terms, cluster.points))
     return sorted(found, key=lambda c: -c.confidence)
+
+
+def above_the_feet(candidate: Candidate, sensor_xy: np.ndarray, model: PersonModel = PersonModel()) -> Candidate:
+    """The candidate judged again with its legs taken above the knees, clear of a low rock at its feet
+    that joined the cluster (person.py's notes: for a tracker that expects a person there)."""
+    cluster = Cluster(candidate.points, candidate.shape.ground_z, True)
+    shape = shape_of(cluster, sensor_xy, model, legs=UPPER_LEGS)
+    confidence, terms = person_confidence(shape, model)
+    return Candidate(shape, confidence, terms, candidate.points)
