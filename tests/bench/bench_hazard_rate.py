@@ -104,7 +104,7 @@ class Bench:
     def place(self, activity: HazardActivity, pose: tuple[float, float, float]) -> RoverPose:
         x, y, heading = pose
         self.testbed.rover.place(x, y, math.radians(heading))
-        self.testbed.ptu_angles = lambda: (0.0, activity.tilt_deg)
+        self.testbed.ptu_angles = lambda at_s=None: (0.0, activity.tilt_deg)
         return RoverPose.from_matrix(self.testbed.rover.body_to_world)
 
     def tof_devices(self, seed: int = 5) -> SimpleNamespace:
