@@ -10,7 +10,7 @@ import pytest
 
 from toolbox.tracking.detect import candidates
 from toolbox.tracking.kalman import Track, TrackParams
-from toolbox.tracking.standing import Plane, StandingParams
+from toolbox.tracking.standing import Cluster, Plane, StandingParams
 
 
 def box_surface(rng, centre, across, along, bottom, top, count):
@@ -160,3 +160,19 @@ def test_a_low_rock_at_a_persons_feet_widens_its_legs_and_the_legs_above_the_kne
     # a boulder of a person's height stays wide above its foot too: no person there either
     lone = candidates(np.concatenate([ground(rng, (5, 0)), boulder(rng)]), np.zeros(2), plane, model=stereo)[0]
     assert above_the_feet(lone, np.zeros(2), stereo).confidence == 0.0
+
+
+def test_a_noisy_sensors_ground_tail_beside_the_feet_does_not_widen_the_legs(rng):
+    """At 7 m a stereo ground point stands once 0.49 m up (4 sigma of 0.12 m); the tail of the ground's
+    noise just above that, smeared beside the feet, joined the cluster and read the legs wider than the
+    torso. The legs are measured from one sigma above where points start to stand."""
+    from toolbox.tracking.detect import legs_floor
+    from toolbox.tracking.person import PersonModel, Trapezoid
+    stereo = PersonModel(legs_to_torso=Trapezoid(0.0, 0.0, 0.92, 1.02))
+    params = StandingParams(noise_per_m2=0.0025, min_cell_points=5)
+    smear = np.column_stack([rng.uniform(6.95, 7.05, 300), rng.uniform(-0.45, 0.45, 300), rng.uniform(0.50, 0.58, 300)])
+    cloud = np.concatenate([noisy_ground(rng, (7.0, 0.0), 0.0025), figure(rng, (7.0, 0.0)), smear])
+    best = candidates(cloud, np.zeros(2), Plane(0.0, 0.0, 0.0), params, stereo)[0]
+    assert best.confidence > 0.9 and best.shape.legs_width < 0.4, (best.terms, best.shape)
+    assert legs_floor(Cluster(best.points, 0.0, True), np.zeros(2), params) == pytest.approx(5 * 0.0025 * 6.9 ** 2, abs=0.02)
+    assert legs_floor(Cluster(best.points, 0.0, True), np.zeros(2), StandingParams()) == 0.0    # the SR4000's

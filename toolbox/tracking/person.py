@@ -102,9 +102,9 @@ EXTENT_PERCENTILES = (3, 97)     # a band's extent across: robust to a few stray
 
 
 def shape_of(cluster: Cluster, sensor_xy: np.ndarray, model: PersonModel = PersonModel(),
-             legs: tuple[float, float] = BANDS["legs"]) -> Shape:
+             legs: tuple[float, float] = BANDS["legs"], legs_floor_m: float = 0.0) -> Shape:
     """What a cluster measures (see the module's notes), its legs band between the shares `legs` of
-    its height."""
+    its height and no lower than `legs_floor_m` above its ground."""
     points = cluster.points
     height = cluster.height
     up = (points[:, 2] - cluster.ground_z) / max(height, 1e-6)
@@ -121,6 +121,8 @@ def shape_of(cluster: Cluster, sensor_xy: np.ndarray, model: PersonModel = Perso
 
     def band(name: str) -> np.ndarray:
         low, high = legs if name == "legs" else BANDS[name]
+        if name == "legs":
+            low = max(low, legs_floor_m / max(height, 1e-6))
         return (up >= low) & (up <= high) & on_body
 
     def extent(mask: np.ndarray) -> float:
