@@ -96,9 +96,9 @@ class Sight:
              ) -> tuple[Any, RoverPose, float, float, float, dict | None, float]:
         """One frame where the PTU stands, with the devices held: the PTU read before and after the
         grab and the angles of the frame's exposure taken between them (the tracker may have the unit
-        still turning, at `ptu_speed_deg_s`, the speed it last set), the rover's estimate with the inclinometer's attitude of the instant, the
-        frame's own time (the middle of its exposure, not when it was asked for) and the truth at that
-        time (simulated)."""
+        still turning, at `ptu_speed_deg_s`, the speed it last set), the rover's estimate with the
+        inclinometer's attitude of the instant, the frame's own time (the middle of its exposure, not
+        when it was asked for) and the truth at that time (simulated)."""
         rover = devices.rover
         started = time.perf_counter()
         before = self._read_ptu(devices)

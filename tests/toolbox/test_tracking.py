@@ -174,5 +174,6 @@ def test_a_noisy_sensors_ground_tail_beside_the_feet_does_not_widen_the_legs(rng
     cloud = np.concatenate([noisy_ground(rng, (7.0, 0.0), 0.0025), figure(rng, (7.0, 0.0)), smear])
     best = candidates(cloud, np.zeros(2), Plane(0.0, 0.0, 0.0), params, stereo)[0]
     assert best.confidence > 0.9 and best.shape.legs_width < 0.4, (best.terms, best.shape)
-    assert legs_floor(Cluster(best.points, 0.0, True), np.zeros(2), params) == pytest.approx(5 * 0.0025 * 6.9 ** 2, abs=0.02)
-    assert legs_floor(Cluster(best.points, 0.0, True), np.zeros(2), StandingParams()) == 0.0    # the SR4000's
+    seen = Cluster(best.points, 0.0, True)
+    assert legs_floor(seen, np.zeros(2), params) == pytest.approx(5 * 0.0025 * 6.9 ** 2, abs=0.02)
+    assert legs_floor(seen, np.zeros(2), StandingParams()) == 0.0    # the SR4000's

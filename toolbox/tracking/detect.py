@@ -53,6 +53,6 @@ def above_the_feet(candidate: Candidate, sensor_xy: np.ndarray, model: PersonMod
     """The candidate judged again with its legs taken above the knees, clear of a low rock at its feet
     that joined the cluster (person.py's notes: for a tracker that expects a person there)."""
     cluster = Cluster(candidate.points, candidate.shape.ground_z, True)
-    shape = shape_of(cluster, sensor_xy, model, legs=UPPER_LEGS)
+    shape = shape_of(cluster, sensor_xy, model, legs_band=UPPER_LEGS)
     confidence, terms = person_confidence(shape, model)
     return Candidate(shape, confidence, terms, candidate.points)

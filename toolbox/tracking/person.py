@@ -29,7 +29,7 @@ beside a 0.35 m rock, stereo seed 418: the frame was no person, and the centre m
 the rock). The legs above the knees (`UPPER_LEGS`) are clear of such rocks; they are not the search's
 band, because an irregular boulder can be narrower there than at its middle (TOF seed 416: 0.44 m
 under 0.52, a person by every measure), while at its foot it is wide. A tracker that already follows
-a person may judge a cluster where it expects it by them (`shape_of(..., legs=UPPER_LEGS)`).
+a person may judge a cluster where it expects it by them (`shape_of(..., legs_band=UPPER_LEGS)`).
 """
 from __future__ import annotations
 
@@ -102,9 +102,9 @@ EXTENT_PERCENTILES = (3, 97)     # a band's extent across: robust to a few stray
 
 
 def shape_of(cluster: Cluster, sensor_xy: np.ndarray, model: PersonModel = PersonModel(),
-             legs: tuple[float, float] = BANDS["legs"], legs_floor_m: float = 0.0) -> Shape:
-    """What a cluster measures (see the module's notes), its legs band between the shares `legs` of
-    its height and no lower than `legs_floor_m` above its ground."""
+             legs_band: tuple[float, float] = BANDS["legs"], legs_floor_m: float = 0.0) -> Shape:
+    """What a cluster measures (see the module's notes), its legs band between the shares `legs_band`
+    of its height and no lower than `legs_floor_m` above its ground."""
     points = cluster.points
     height = cluster.height
     up = (points[:, 2] - cluster.ground_z) / max(height, 1e-6)
@@ -120,7 +120,7 @@ def shape_of(cluster: Cluster, sensor_xy: np.ndarray, model: PersonModel = Perso
     on_body = np.abs(radial - np.median(radial)) <= model.body_reach_m
 
     def band(name: str) -> np.ndarray:
-        low, high = legs if name == "legs" else BANDS[name]
+        low, high = legs_band if name == "legs" else BANDS[name]
         if name == "legs":
             low = max(low, legs_floor_m / max(height, 1e-6))
         return (up >= low) & (up <= high) & on_body
