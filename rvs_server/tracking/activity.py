@@ -196,7 +196,7 @@ class TrackActivity(Activity):
             if (candidate.confidence < threshold and heights_known
                     and min(candidate.terms, key=candidate.terms.get) == "legs_to_torso"
                     and abs(self._height_off(candidate)) <= RESTART_HEIGHT_M):
-                candidate = above_the_feet(candidate, seen.sensor_xy, self.model)
+                candidate = above_the_feet(candidate, seen.sensor_xy, self.model, self.settings.standing(self.sensor))
             if candidate.confidence >= threshold:
                 judged.append(candidate)
         return judged

@@ -49,10 +49,12 @@ def legs_floor(cluster: Cluster, sensor_xy: np.ndarray, params: StandingParams) 
     return float(params.min_above_at(range_m) + params.noise_at(range_m))
 
 
-def above_the_feet(candidate: Candidate, sensor_xy: np.ndarray, model: PersonModel = PersonModel()) -> Candidate:
+def above_the_feet(candidate: Candidate, sensor_xy: np.ndarray, model: PersonModel = PersonModel(),
+                   params: StandingParams = StandingParams()) -> Candidate:
     """The candidate judged again with its legs taken above the knees, clear of a low rock at its feet
     that joined the cluster (person.py's notes: for a tracker that expects a person there)."""
     cluster = Cluster(candidate.points, candidate.shape.ground_z, True)
-    shape = shape_of(cluster, sensor_xy, model, legs_band=UPPER_LEGS)
+    shape = shape_of(cluster, sensor_xy, model, legs_band=UPPER_LEGS,
+                     legs_floor_m=legs_floor(cluster, sensor_xy, params))
     confidence, terms = person_confidence(shape, model)
     return Candidate(shape, confidence, terms, candidate.points)
