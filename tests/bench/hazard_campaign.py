@@ -26,6 +26,7 @@ hazard-stop's stops.csv and the products' truth. Prints one line per encounter a
 from __future__ import annotations
 
 import argparse
+import contextlib
 import csv
 import json
 import math
@@ -371,6 +372,15 @@ def summarise(records: list[dict], sensor: str) -> str:
     return "\n".join(lines)
 
 
+def scene_folder(seed: int, keep: str | None) -> contextlib.AbstractContextManager[str]:
+    """A scene's data folder: a temporary one, or one kept under `keep` (made if missing) to look at."""
+    prefix = f"hazard-campaign-{seed}-"
+    if keep is None:
+        return tempfile.TemporaryDirectory(prefix=prefix)
+    Path(keep).mkdir(parents=True, exist_ok=True)
+    return contextlib.nullcontext(tempfile.mkdtemp(prefix=prefix, dir=keep))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--sensor", choices=("tof", "stereo"), default="tof")
@@ -392,9 +402,7 @@ def main() -> None:
         started = time.monotonic()
         encounters: list[dict] = []
         try:
-            with tempfile.TemporaryDirectory(prefix=f"hazard-campaign-{task['seed']}-", dir=args.keep) as tmp:
-                if args.keep:   # keep the products to look at: TemporaryDirectory's own clean-up is skipped
-                    tmp = tempfile.mkdtemp(prefix=f"hazard-campaign-{task['seed']}-", dir=args.keep)
+            with scene_folder(task["seed"], args.keep) as tmp:
                 scene = Scene(task["seed"], Path(tmp), args.cover)
                 try:
                     result = run_scene(scene, args.sensor, args.encounters, args.routes, encounters)
