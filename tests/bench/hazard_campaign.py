@@ -353,7 +353,7 @@ def summarise(records: list[dict], sensor: str) -> str:
              f"  stopped short of the obstacle before contact: {len(short)}/{len(log)}; encounters with a contact: "
              f"{touched}; contacts over the campaign (truth): {sum(r['contacts'] for r in scenes)}",
              f"  clean runs: {clean_m:.1f} m, false stops {false_stops} -> "
-             f"{100.0 * false_stops / max(clean_m, 1e-9):.2f} per 100 m"]
+             + (f"{100.0 * false_stops / clean_m:.2f} per 100 m" if clean_m > 0 else "no clean metre driven")]
     if rates:
         # At sim-speed 50 the guard's frames are paced by wall time (each drive step waits for a fresh
         # frame), so the rate per simulated second is not the guard's speed: its latency is.
