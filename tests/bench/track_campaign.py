@@ -82,7 +82,9 @@ RESULTS = Path(__file__).resolve().parent / "results" / "track.jsonl"
 # "ptu-speed": a frame exposed in a PTU hop takes the unit's set speed between the two readings.
 # "upper-legs": while it follows a person, a cluster of the target's height whose legs alone fail is
 # judged by the legs above the knees (a low rock at the walker's feet joined the cluster).
-TRACKER = "upper-legs"
+# "legs-floor": a stereo cluster's legs are measured from one noise deviation above where its points
+# start to stand (the ground's noise tail beside the feet widened them at 7 m).
+TRACKER = "legs-floor"
 
 
 def world_toml(seed: int) -> str:
