@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .person import UPPER_LEGS, PersonModel, Shape, person_confidence, shape_of
+from .person import BANDS, UPPER_LEGS, PersonModel, Shape, person_confidence, shape_of
 from .standing import Cluster, Plane, StandingParams, ground_of, standing_clusters
 
 
@@ -31,12 +31,18 @@ def candidates(points: np.ndarray, sensor_xy: np.ndarray, plane: Plane,
     if len(points) < params.min_points:
         return []
     ground = ground_of(points, plane, params, sensor_xy=sensor_xy)
-    found = []
-    for cluster in standing_clusters(points, ground, params, sensor_xy):
-        shape = shape_of(cluster, sensor_xy, model, legs_floor_m=legs_floor(cluster, sensor_xy, params))
-        confidence, terms = person_confidence(shape, model)
-        found.append(Candidate(shape, confidence, terms, cluster.points))
+    clusters = standing_clusters(points, ground, params, sensor_xy)
+    found = [judged(cluster, sensor_xy, model, params) for cluster in clusters]
     return sorted(found, key=lambda c: -c.confidence)
+
+
+def judged(cluster: Cluster, sensor_xy: np.ndarray, model: PersonModel, params: StandingParams,
+           legs_band: tuple[float, float] = BANDS["legs"]) -> Candidate:
+    """One cluster's shape and how person-like it is, its legs measured in `legs_band` above the
+    sensor's floor for them."""
+    shape = shape_of(cluster, sensor_xy, model, legs_band, legs_floor(cluster, sensor_xy, params))
+    confidence, terms = person_confidence(shape, model)
+    return Candidate(shape, confidence, terms, cluster.points)
 
 
 def legs_floor(cluster: Cluster, sensor_xy: np.ndarray, params: StandingParams) -> float:
@@ -53,8 +59,4 @@ def above_the_feet(candidate: Candidate, sensor_xy: np.ndarray, model: PersonMod
                    params: StandingParams = StandingParams()) -> Candidate:
     """The candidate judged again with its legs taken above the knees, clear of a low rock at its feet
     that joined the cluster (person.py's notes: for a tracker that expects a person there)."""
-    cluster = Cluster(candidate.points, candidate.shape.ground_z, True)
-    shape = shape_of(cluster, sensor_xy, model, legs_band=UPPER_LEGS,
-                     legs_floor_m=legs_floor(cluster, sensor_xy, params))
-    confidence, terms = person_confidence(shape, model)
-    return Candidate(shape, confidence, terms, candidate.points)
+    return judged(Cluster(candidate.points, candidate.shape.ground_z, True), sensor_xy, model, params, UPPER_LEGS)
