@@ -133,21 +133,24 @@ class Rover:
     def sensors(self) -> list[str]:
         return list(self.config.mounts)
 
-    def head_to_world(self, pan_deg: float, tilt_deg: float) -> np.ndarray:
-        """4x4 PTU head frame to world for the given PTU angles (degrees)."""
-        return self.body_to_world @ self._head_to_body(math.radians(pan_deg), math.radians(tilt_deg))
+    def head_to_world(self, pan_deg: float, tilt_deg: float, body: np.ndarray | None = None) -> np.ndarray:
+        """4x4 PTU head frame to world for the given PTU angles (degrees), on the body pose `body`
+        (4x4; default the rover's own now)."""
+        body = self.body_to_world if body is None else body
+        return body @ self._head_to_body(math.radians(pan_deg), math.radians(tilt_deg))
 
     def sensor_to_world(self, sensor: str, pan_deg: float = 0.0, tilt_deg: float = 0.0,
-                        calibrated: bool = False) -> np.ndarray:
+                        calibrated: bool = False, body: np.ndarray | None = None) -> np.ndarray:
         """4x4 camera-to-world pose of a sensor (OpenCV camera frame) for the given PTU angles.
 
         calibrated=False is the truth (what to render with); True uses the calibrated mount, i.e.
-        what RVS computes from its calibration and the PTU angles.
+        what RVS computes from its calibration and the PTU angles. `body`: a body-to-world pose
+        read earlier (default the rover's now).
         """
         mounts = self.calibrated_mounts if calibrated else self.true_mounts
         if sensor not in mounts:
             raise KeyError(f"no sensor {sensor!r}; the rover has {', '.join(mounts)}")
-        return self.head_to_world(pan_deg, tilt_deg) @ mounts[sensor].to_head()
+        return self.head_to_world(pan_deg, tilt_deg, body) @ mounts[sensor].to_head()
 
     def _head_to_body(self, pan: float, tilt: float) -> np.ndarray:
         pose = np.eye(4)

@@ -102,6 +102,9 @@ class SimulatedTestbed:
         self.astronaut_id: int | None = None
         self.walk: Walk | None = None
         self._obstacles_lock = threading.Lock()
+        # The rover body and PTU angles of the latest trigger pulse: (pulse time, (body, pan, tilt)).
+        self._rig_lock = threading.Lock()
+        self._rig_pulse: tuple[float, tuple[np.ndarray, float, float]] | None = None
 
     # -- the world, built once ------------------------------------------------------------------
 
@@ -168,10 +171,22 @@ class SimulatedTestbed:
 
     def sensor_pose(self, sensor: str, at_s: float | None = None) -> np.ndarray:
         """The true camera-to-world pose of a sensor now (OpenCV camera frame), a walking astronaut
-        brought to where it is at `at_s` (a trigger pulse's time; default now) for the sensor to see."""
+        brought to where it is at `at_s` (a trigger pulse's time; default now) for the sensor to see.
+
+        Every sensor asked for the same pulse gets the rover body and PTU angles of the first ask:
+        the stereo pair's two cameras take one pulse in turn, and a drive stepping the rover
+        between them (5 cm a step, milliseconds apart at a simulation speed-up) put the right camera
+        5 cm off the left, a pair no matcher can make ground of (the stereo guard's false stops)."""
         self.update_obstacles(at_s)
-        pan, tilt = self.ptu_angles()
-        return self.rover.sensor_to_world(sensor, pan, tilt)
+        with self._rig_lock:
+            if at_s is None or self._rig_pulse is None or self._rig_pulse[0] != at_s:
+                rig = (self.rover.body_to_world, *self.ptu_angles())
+                if at_s is not None:
+                    self._rig_pulse = (at_s, rig)
+            else:
+                rig = self._rig_pulse[1]
+        body, pan, tilt = rig
+        return self.rover.sensor_to_world(sensor, pan, tilt, body=body)
 
     def drive(self, turn_rad: float, distance_m: float, step_height: float = 0.10) -> Motion:
         """Execute one motion command with the rover's drive error (drivers/sim/motion.py); the
