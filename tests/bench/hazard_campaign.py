@@ -56,11 +56,20 @@ LANE_HALF_WIDTH = 0.50      # 0.25 half body + 0.10 guard margin + 0.15 for driv
 PASS_HALF_WIDTH = 0.35      # driving to a lane: half the body and 0.1 m
 CLEAR_BELOW = 0.08          # a lane is clean when no rock on it is taller than this
 CLEAN_RUN_M = 4.0           # each clean run
+STEEP_RAD = math.radians(15.0)   # nor on ground this steep (World.slope_at answers radians)
 RESULTS = REPO / "tests" / "bench" / "results" / "hazard.jsonl"
 
 
 def world_toml(seed: int, cover: float) -> str:
     return f"seed = {seed}\nsize_m = [20.0, 20.0]\n[rocks]\ncover = {cover:g}\n[craters]\ncount = 1\n"
+
+
+def ground_slope(world: World, x: np.ndarray, y: np.ndarray, baseline: float = 0.25) -> np.ndarray:
+    """The rock-free ground's slope (radians) over a patch `baseline` wide: rocks are CLEAR_BELOW's."""
+    half = baseline / 2
+    dz_dx = (world.ground_height_at(x + half, y) - world.ground_height_at(x - half, y)) / baseline
+    dz_dy = (world.ground_height_at(x, y + half) - world.ground_height_at(x, y - half)) / baseline
+    return np.arctan(np.hypot(dz_dx, dz_dy))
 
 
 class Lanes:
@@ -76,7 +85,7 @@ class Lanes:
         ys = np.arange(self.y0, y1 - 1.0, cell)
         gx, gy = np.meshgrid(xs, ys)
         blocked = world.protrusion_at(gx, gy) >= CLEAR_BELOW
-        coarse = world.slope_at(gx[::3, ::3], gy[::3, ::3], 0.25) >= 15.0
+        coarse = ground_slope(world, gx[::3, ::3], gy[::3, ::3]) >= STEEP_RAD
         blocked |= np.repeat(np.repeat(coarse, 3, axis=0), 3, axis=1)[:len(ys), :len(xs)]
         grown = inflate_hazards(blocked, cell, LANE_HALF_WIDTH)
         self.forbidden = grown.mask
@@ -141,17 +150,37 @@ class Lanes:
         return None
 
 
-class Scene:
-    def __init__(self, seed: int, workdir: Path, cover: float):
+class SceneWorld:
+    """A scene's seeded world and its clear lanes, without a server (tests/bench/measure_corridor.py)."""
+
+    def __init__(self, seed: int, cover: float):
         self.seed = seed
-        text = world_toml(seed, cover)
-        self.world = World.build(WorldConfig(**tomllib.loads(text)))
+        self.world_text = world_toml(seed, cover)
+        self.world = World.build(WorldConfig(**tomllib.loads(self.world_text)))
         self.lanes = Lanes(self.world)
+        self.rng = np.random.default_rng(seed)
+
+    def lane_clear(self, x: float, y: float, heading: float, length: float) -> bool:
+        along = np.arange(-0.4, length + 0.3, 0.02)
+        across = np.arange(-LANE_HALF_WIDTH, LANE_HALF_WIDTH + 1e-9, 0.02)
+        a, b = np.meshgrid(along, across)
+        c, s = math.cos(heading), math.sin(heading)
+        xs, ys = x + a * c - b * s, y + a * s + b * c
+        g = self.world.grid
+        if not ((xs > g.x_min + 1.0) & (xs < g.x_max - 1.0) & (ys > g.y_min + 1.0) & (ys < g.y_max - 1.0)).all():
+            return False
+        if np.nanmax(self.world.protrusion_at(xs, ys)) >= CLEAR_BELOW:
+            return False
+        return bool(np.nanmax(ground_slope(self.world, xs[::5, ::5], ys[::5, ::5])) < STEEP_RAD)
+
+
+class Scene(SceneWorld):
+    def __init__(self, seed: int, workdir: Path, cover: float):
+        super().__init__(seed, cover)
         self.relocation_contacts = 0  # contacts while driving unguarded to a lane (not the guard's)
-        config = write_configs(workdir / "configs", {"world.toml": text})
+        config = write_configs(workdir / "configs", {"world.toml": self.world_text})
         self.server = ServerProcess(workdir / "data", config).start(timeout=180)
         self.client = self.server.connect(timeout=900)
-        self.rng = np.random.default_rng(seed)
 
     def command(self, line: str, timeout: float = 900) -> str:
         return self.client.command(line, timeout=timeout)
@@ -169,19 +198,6 @@ class Scene:
 
     def contacts(self) -> int:
         return int(self.truth()["contacts"])
-
-    def lane_clear(self, x: float, y: float, heading: float, length: float) -> bool:
-        along = np.arange(-0.4, length + 0.3, 0.02)
-        across = np.arange(-LANE_HALF_WIDTH, LANE_HALF_WIDTH + 1e-9, 0.02)
-        a, b = np.meshgrid(along, across)
-        c, s = math.cos(heading), math.sin(heading)
-        xs, ys = x + a * c - b * s, y + a * s + b * c
-        g = self.world.grid
-        if not ((xs > g.x_min + 1.0) & (xs < g.x_max - 1.0) & (ys > g.y_min + 1.0) & (ys < g.y_max - 1.0)).all():
-            return False
-        if np.nanmax(self.world.protrusion_at(xs, ys)) >= CLEAR_BELOW:
-            return False
-        return bool(np.nanmax(self.world.slope_at(xs[::5, ::5], ys[::5, ::5], 0.25)) < 15.0)
 
     def onto_lane(self, length: float) -> tuple[float, float, float] | None:
         """Turn onto a clear lane of `length`; the true pose on it, or None when none is found."""
