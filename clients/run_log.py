@@ -147,3 +147,36 @@ def reported(args: argparse.Namespace, summarise: Callable[[list[dict[str, Any]]
         return False
     print(report(args.report, summarise))
     return True
+
+
+def add_config_options(parser: argparse.ArgumentParser) -> None:
+    """A campaign script's --set FILE:KEY=VALUE (repeatable): a setting of the servers' configs/FILE for
+    every run, kept in the runs' settings so each choice is a table of its own."""
+    parser.add_argument("--set", dest="config_set", action="append", default=[], metavar="FILE:KEY=VALUE",
+                        help="a setting of configs/FILE for every run, the value in TOML: orient.toml:"
+                             "keyframe_overlap=0.4, navigation.toml:orient={tof=true,stereo=true}; a dotted "
+                             "KEY names a table's key")
+
+
+def config_overrides(items: Iterable[str]) -> dict[str, dict[str, Any]]:
+    """{file: {key: value}} of --set items (`FILE:KEY=VALUE`, VALUE a TOML value, KEY dotted for
+    tables). ValueError naming the item and what is allowed when one is not of that form."""
+    import tomllib
+
+    overrides: dict[str, dict[str, Any]] = {}
+    for item in items:
+        name, colon, setting = item.partition(":")
+        key, equals, text = setting.partition("=")
+        if not (colon and equals and name.endswith(".toml") and key.strip()):
+            raise ValueError(f"--set {item!r}: expected FILE.toml:KEY=VALUE, e.g. orient.toml:min_matches=40")
+        try:
+            value = tomllib.loads(f"value = {text.strip()}")["value"]
+        except tomllib.TOMLDecodeError as exc:
+            raise ValueError(f"--set {item!r}: the value {text.strip()!r} is not a TOML value ({exc}); "
+                             "strings need quotes: sensor='stereo'") from None
+        table = overrides.setdefault(name.strip(), {})
+        *parents, last = [part.strip() for part in key.split(".")]
+        for part in parents:
+            table = table.setdefault(part, {})
+        table[last] = value
+    return overrides

@@ -46,7 +46,15 @@ REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO / "tests"))
 sys.path.insert(0, str(REPO))
 
-from clients.run_log import RunLog, add_results_options, report, reported  # noqa: E402
+from clients.campaign import override_config  # noqa: E402
+from clients.run_log import (  # noqa: E402
+    RunLog,
+    add_config_options,
+    add_results_options,
+    config_overrides,
+    report,
+    reported,
+)
 from drivers.sim.motion import dead_reckon  # noqa: E402
 
 from conftest import ServerProcess, pairs, write_configs  # noqa: E402
@@ -98,7 +106,7 @@ def plan_step(world, rng, true_pose) -> tuple[float, float]:
 
 
 def run(seed: int, sensor: str, length: float, max_turn: float, look_before_drive: float, out: Path,
-        verbose: bool = False) -> dict:
+        verbose: bool = False, configs: dict[str, dict] | None = None) -> dict:
     import tomllib
 
     from drivers.sim.config import WorldConfig
@@ -108,8 +116,10 @@ def run(seed: int, sensor: str, length: float, max_turn: float, look_before_driv
     world = World.build(WorldConfig(**tomllib.loads(text)))
     rng = np.random.default_rng([seed, 7])
     workdir = Path(tempfile.mkdtemp(prefix=f"orient-{sensor}-{seed}-", dir=out))
-    server = ServerProcess(workdir / "data",
-                           write_configs(workdir / "configs", {"world.toml": text})).start(timeout=300)
+    config_dir = write_configs(workdir / "configs", {"world.toml": text})
+    for name, over in (configs or {}).items():
+        override_config(config_dir, name, over)
+    server = ServerProcess(workdir / "data", config_dir).start(timeout=300)
     client = server.connect(timeout=900)
     looks, calls, failures = [], 0, []
     dr = (START[0], START[1], math.radians(START[2]))
@@ -296,15 +306,21 @@ def main() -> None:
     parser.add_argument("--jobs", type=int, default=2)
     parser.add_argument("--label", help="names the code's revision in the runs' settings (a table of its own)")
     add_results_options(parser, RESULTS)
+    add_config_options(parser)
     parser.add_argument("--out", type=Path, default=Path("/tmp/rvs-orient"), help="the servers' work folders")
     parser.add_argument("--verbose", action="store_true", help="a line per look")
     args = parser.parse_args()
     if reported(args, summarise):
         return
+    try:
+        configs = config_overrides(args.config_set)
+    except ValueError as exc:
+        parser.error(str(exc))
     args.out.mkdir(parents=True, exist_ok=True)
     log = RunLog(args.results, {"length_m": args.length, "max_turn_deg": args.max_turn,
                                 "look_before_drive_deg": args.look_before_drive,
-                                **({"label": args.label} if args.label else {})})
+                                **({"label": args.label} if args.label else {}),
+                                **({"configs": configs} if configs else {})})
     started = time.perf_counter()
     planned = [{"seed": seed, "sensor": sensor} for sensor in args.sensors for seed in args.seeds]
     tasks = log.todo(planned)
@@ -312,7 +328,7 @@ def main() -> None:
           flush=True)
     with ProcessPoolExecutor(args.jobs, max_tasks_per_child=1) as pool:
         futures = {pool.submit(run, task["seed"], task["sensor"], args.length, args.max_turn,
-                               args.look_before_drive, args.out, args.verbose):
+                               args.look_before_drive, args.out, args.verbose, configs):
                    task for task in tasks}
         for future in as_completed(futures):
             task = futures[future]

@@ -100,3 +100,28 @@ def test_the_navigation_campaign_reports_from_its_file_alone(tmp_path):
     assert "== orient=off size_m=34.0: 2 runs" in off and "median 30.0 cm" in off
     assert "median 5.0 cm" in on and "success 2/2" in on and "orient looks per run median 3" in on
     assert json.loads(path.read_text().splitlines()[0])["run"] == {"seed": 101, "sensor": "tof"}
+
+
+def test_config_settings_of_a_campaign_are_parsed_applied_and_refused_by_name(tmp_path):
+    import tomllib
+
+    import pytest
+
+    from clients.campaign import override_config
+    from clients.run_log import config_overrides
+
+    from conftest import write_configs
+
+    overrides = config_overrides(["orient.toml:sensor='tof'", "navigation.toml:orient={tof=true, stereo=false}",
+                                  "orient.toml:stereo.max_features=900"])
+    assert overrides == {"orient.toml": {"sensor": "tof", "stereo": {"max_features": 900}},
+                         "navigation.toml": {"orient": {"tof": True, "stereo": False}}}
+    configs = write_configs(tmp_path / "configs", {})
+    override_config(configs, "navigation.toml", overrides["navigation.toml"])
+    assert tomllib.loads((configs / "navigation.toml").read_text())["orient"] == {"tof": True, "stereo": False}
+
+    for bad, says in (("orient.toml:sensor=tof", "not a TOML value"), ("orient.toml sensor=1", "FILE.toml:KEY=VALUE"),
+                      ("orient:sensor=1", "FILE.toml:KEY=VALUE"), ("orient.toml:=1", "FILE.toml:KEY=VALUE")):
+        with pytest.raises(ValueError, match=says) as error:
+            config_overrides([bad])
+        assert repr(bad) in str(error.value)
