@@ -36,6 +36,7 @@ class FrameSettings:
     max_range_m: float                   # points farther from the camera are dropped
     stereo_resolution: str = "low"
     stereo_disparities: int = 64
+    stereo_min_disparity: int = 0             # the matcher's search starts here (pixels)
     tof_max_distance_m: float | None = None   # None: the camera's own modulation
     min_confidence: int | None = None         # TOF; None: mapping.toml's
     tof_max_integration: int | None = None    # TOF: the exposure (register) auto exposure may reach
@@ -119,7 +120,8 @@ class FramePoints:
         left_pose = camera_to_world(level, self.mounts["left"], 0.0, 0.0)
         right_pose = camera_to_world(level, self.mounts["right"], 0.0, 0.0)
         rect = rectification(StereoCalibration(left, right, relative_pose(left_pose, right_pose)))
-        return rect, SgbmConfig(num_disparities=self.settings.stereo_disparities, block_size=5)
+        return rect, SgbmConfig(min_disparity=self.settings.stereo_min_disparity,
+                                num_disparities=self.settings.stereo_disparities, block_size=5)
 
 
 def binned_grab(pair: Any, mode: str, timeout_s: float) -> dict:

@@ -61,7 +61,8 @@ class HazardActivity(Activity["Host"]):
         self.guard = HazardGuard(self)
         self.frames_of = FramePoints(server, FrameSettings(
             sensor, mapping.max_range_m if sensor == "tof" else settings.stereo_max_range_m,
-            settings.stereo_resolution, settings.stereo_disparities))
+            settings.stereo_resolution, settings.stereo_disparities,
+            stereo_min_disparity=settings.stereo_min_disparity))
 
     # -- what the guard asks -----------------------------------------------------------------------
     def nearest(self, pose: tuple[float, float, float], direction: int, max_distance: float) -> Hit | None:

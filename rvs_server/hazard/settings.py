@@ -6,6 +6,7 @@ from typing import Literal
 
 from pydantic import Field
 
+from drivers.avt import ResolutionMode
 from rvs_server.config import Settings
 
 Sensor = Literal["tof", "stereo"]
@@ -32,10 +33,16 @@ class HazardSettings(Settings):
                                     "than speed x (1/rate + this) behind the rover")
     max_blind_s: float = Field(10.0, gt=0, le=600, description="a drive without a fresh frame this long (wall "
                                "clock) stops")
-    stereo_resolution: Literal["low", "medium", "high", "highest"] = Field(
+    stereo_resolution: ResolutionMode = Field(
         "low", description="the cameras' resolution mode for hazard frames (low: 4 x 4 binning, 480 x 270), given "
         "back after each frame")
     stereo_disparities: int = Field(64, ge=16, le=256, multiple_of=16)
+    stereo_min_disparity: int = Field(16, ge=0, le=256, description="the matcher searches stereo_disparities "
+                                      "from this one (pixels): the ground a frame keeps lies nearer than "
+                                      "stereo_max_range_m (25 px at 4 m in low), while the ground at the view's "
+                                      "foot, uphill most, reaches 70; searched from 0, SGBM put that ground at a "
+                                      "lower disparity, metres too far and 10 cm low, and its neighbours read as "
+                                      "steps (false stops on a crater's 11-degree side)")
     stereo_max_range_m: float = Field(4.0, gt=0, le=30, description="stereo points farther than this from the "
                                       "camera are dropped: at 480 x 270 their depth error reads as steps")
     picture_frames: int = Field(20, ge=1, le=500, description="corridor.png outlines this many last frames")
