@@ -33,6 +33,11 @@ Resolution modes on a W x H sensor (1920 x 1080 for the PIKE F-210B):
     high     centred window of 3/4 W x 3/4 H, no      1440 x 810  (75 % of the field of view,
              binning                                                full detail)
     highest  the whole sensor                         1920 x 1080
+    narrow   2 x 2 binning, centred window of         360 x 405   (the middle 25 x 28 degrees at
+             3/8 W x 3/4 H                                          medium's detail, as few pixels
+                                                                    as low: a target the PTU keeps
+                                                                    in the middle, such as a walker
+                                                                    being tracked)
 """
 from __future__ import annotations
 
@@ -53,16 +58,17 @@ from toolbox.camera import Intrinsics
 
 log = logging.getLogger(__name__)
 
-ResolutionMode = Literal["low", "medium", "high", "highest"]
+ResolutionMode = Literal["low", "medium", "high", "highest", "narrow"]
 PixelFormat = Literal["mono8", "rgb8"]
-RESOLUTION_MODES: tuple[str, ...] = ("low", "medium", "high", "highest")
+RESOLUTION_MODES: tuple[str, ...] = ("low", "medium", "high", "highest", "narrow")
 PIXEL_FORMATS: tuple[str, ...] = ("mono8", "rgb8")
 ROLES: tuple[str, ...] = ("left", "right")
 EXPOSURE_MIN_US, EXPOSURE_MAX_US = 10.0, 10_000_000.0
 
-# Binning factor and the centred window's share of the sensor's width and height, per mode.
-MODE_BINNING = {"low": 4, "medium": 2, "high": 1, "highest": 1}
-MODE_WINDOW = {"low": 1.0, "medium": 1.0, "high": 0.75, "highest": 1.0}
+# Binning factor and the centred window's share of the sensor's (width, height), per mode.
+MODE_BINNING = {"low": 4, "medium": 2, "high": 1, "highest": 1, "narrow": 2}
+MODE_WINDOW = {"low": (1.0, 1.0), "medium": (1.0, 1.0), "high": (0.75, 0.75), "highest": (1.0, 1.0),
+               "narrow": (0.375, 0.75)}
 
 # The thesis' camera: 1920 x 1080 pixels of 7.4 um (PIKE F-210B). The thesis names no lens; a
 # 12 mm lens (61 degrees across) is assumed.
@@ -162,8 +168,8 @@ class ModeWindow:
 def mode_window(sensor_width: int, sensor_height: int, mode: str) -> ModeWindow:
     binning = MODE_BINNING[mode]
     binned_w, binned_h = sensor_width // binning, sensor_height // binning
-    width = int(round(binned_w * MODE_WINDOW[mode]))
-    height = int(round(binned_h * MODE_WINDOW[mode]))
+    share_w, share_h = MODE_WINDOW[mode]
+    width, height = int(round(binned_w * share_w)), int(round(binned_h * share_h))
     return ModeWindow(binning, width, height, (binned_w - width) // 2, (binned_h - height) // 2)
 
 

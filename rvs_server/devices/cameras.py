@@ -6,12 +6,13 @@ from typing import Literal
 
 from pydantic import Field
 
+from drivers.avt import ResolutionMode
 from drivers.errors import DeviceFault
 
 from ..config import Settings
 from .base import SensorDevice
 
-Resolution = Literal["low", "medium", "high", "highest"]
+Resolution = ResolutionMode
 
 
 class CamerasDeviceConfig(Settings):

@@ -68,12 +68,13 @@ class TrackActivity(Activity):
                  product: Any):
         super().__init__(server, rate_hz)
         self.settings, self.sensor, self.product = settings, sensor, product
-        self.sight = Sight(server, settings, sensor)
+        self.sight = Sight(server, settings, sensor, settings.stereo_track_resolution)
         self.model = settings.person(sensor)
+        self.standing = settings.standing(sensor, self.sight.resolution)
         # The track is born where and when the search saw the target, its speed unknown up to a
         # walker's: by the first frame its gate has grown by all the search's time since. Until it
         # first takes a measurement it wants a person as sure as a lost track does.
-        sigma = settings.sigma_m(sensor, 5.0)
+        sigma = settings.sigma_m(sensor, 5.0, self.sight.resolution)
         self.track = Track.start(np.array([target.x, target.y]), np.eye(2) * sigma ** 2, target.sim_s,
                                  settings.track(sensor), speed_sigma=settings.walk_speed_m_s / 2)
         self.track.seen_s = max(target.sim_s, server.clock.now())   # coasting counts from the start
@@ -110,7 +111,7 @@ class TrackActivity(Activity):
                 return self.unknown(seq, f"a job holds the {busy}")
             grabbed = self.sight.grab(devices, self._ptu_speed_deg_s)
         seen = self.sight.seen(grabbed)
-        found = candidates(seen.points, seen.sensor_xy, self._fallback_plane(seen), self.settings.standing(self.sensor),
+        found = candidates(seen.points, seen.sensor_xy, self._fallback_plane(seen), self.standing,
                            self.model)
         chosen = self._follow(seen, found)
         if chosen is not None:
@@ -196,7 +197,7 @@ class TrackActivity(Activity):
             if (candidate.confidence < threshold and heights_known
                     and min(candidate.terms, key=candidate.terms.get) == "legs_to_torso"
                     and abs(self._height_off(candidate)) <= RESTART_HEIGHT_M):
-                candidate = above_the_feet(candidate, seen.sensor_xy, self.model, self.settings.standing(self.sensor))
+                candidate = above_the_feet(candidate, seen.sensor_xy, self.model, self.standing)
             if candidate.confidence >= threshold:
                 judged.append(candidate)
         return judged
@@ -230,7 +231,7 @@ class TrackActivity(Activity):
         1.3 m cluster 1.6 m off in, stereo seed 407), it only weighs less once chosen."""
         chosen, best = None, math.inf
         for candidate in found:
-            cov = self.settings.measurement_cov(self.sensor, candidate.xy - seen.sensor_xy)
+            cov = self.settings.measurement_cov(self.sensor, candidate.xy - seen.sensor_xy, self.sight.resolution)
             if self.track.in_gate(candidate.xy, cov):
                 distance = self.track.distance2(candidate.xy, cov)
                 if distance < best:
@@ -299,7 +300,7 @@ class TrackActivity(Activity):
         from the target's: a body cut short (legs behind a rock, the top out of view) or merged with a
         rock has its centre off by 0.2-1.5 m (stereo seed 403: every frame over 0.2 m off read
         0.1-0.5 m short or tall), and one such frame should not pull the track."""
-        cov = self.settings.measurement_cov(self.sensor, candidate.xy - seen.sensor_xy)
+        cov = self.settings.measurement_cov(self.sensor, candidate.xy - seen.sensor_xy, self.sight.resolution)
         return cov * (1.0 + (self._height_off(candidate) / self.settings.shape_height_sigma_m) ** 2)
 
     def _height_off(self, candidate: Candidate) -> float:

@@ -6,6 +6,7 @@ from typing import Annotated, Literal
 import numpy as np
 from pydantic import Field
 
+from drivers.avt import MODE_BINNING, ResolutionMode
 from rvs_server.config import PerSensor, Range, Settings
 from toolbox.tracking.kalman import TrackParams
 from toolbox.tracking.person import PersonModel, Trapezoid
@@ -41,8 +42,13 @@ class TrackingSettings(Settings):
                                      "short ones); the camera's own given back when a job takes it")
     tof_min_confidence: int = Field(4096, ge=0, le=65535, description="SR4000 pixels below this confidence are "
                                     "dropped (mapping's 16384 drops the ground a person stands on at 10 m range)")
-    stereo_resolution: Literal["low", "medium", "high", "highest"] = Field(
+    stereo_resolution: ResolutionMode = Field(
         "low", description="the cameras' mode for tracking frames (low: 4 x 4 binning), given back after each")
+    stereo_track_resolution: ResolutionMode = Field(
+        "low", description="the cameras' mode for the tracker's frames (narrow: the middle 25 x 28 degrees at 2 x "
+        "2 binning, as few pixels as low, for a target the PTU keeps in the middle; the search keeps "
+        "stereo_resolution's wide view); the stereo noise terms below are for 4 x 4 binning and scale with the "
+        "mode's binning")
     stereo_disparities: int = Field(64, ge=16, le=256, multiple_of=16)
     tof_sigma_m: float = Field(0.04, gt=0, description="1 sigma of one TOF frame's centre, per axis")
     stereo_sigma_m: float = Field(0.04, gt=0, description="1 sigma of one stereo frame's centre along the line "
@@ -98,10 +104,18 @@ class TrackingSettings(Settings):
     lost_sweep_speed_deg_s: float = Field(30.0, gt=0, le=300, description="the lost sweep's pan speed (a TOF "
                                           "frame at 10 Hz then spans 3 degrees, well inside its 37-degree view)")
 
-    def standing(self, sensor: str) -> StandingParams:
+    def stereo_detail(self, resolution: str | None) -> float:
+        """The stereo range noise of a mode against 4 x 4 binning's (what the noise terms are given
+        for): a disparity error of a fixed share of a pixel, so it scales with the binning."""
+        return MODE_BINNING[resolution or self.stereo_resolution] / 4
+
+    def standing(self, sensor: str, resolution: str | None = None) -> StandingParams:
+        """The ground and standing points' parameters of a sensor's frames (stereo: in the mode
+        `resolution`, default the search's)."""
         if sensor == "tof":
             return StandingParams()
-        return StandingParams(noise_per_m2=self.stereo_ground_noise_per_m2, min_cell_points=self.stereo_min_cell_points)
+        return StandingParams(noise_per_m2=self.stereo_ground_noise_per_m2 * self.stereo_detail(resolution),
+                              min_cell_points=self.stereo_min_cell_points)
 
     def person(self, sensor: str) -> PersonModel:
         if sensor == "tof":
@@ -113,18 +127,19 @@ class TrackingSettings(Settings):
         return TrackParams(q=self.acceleration_density.of(sensor), max_coast_s=self.max_coast_s,
                            min_gate_m=self.min_gate_m)
 
-    def sigma_m(self, sensor: str, range_m: float) -> float:
-        """1 sigma of one frame's centre along the line of sight at `range_m`."""
+    def sigma_m(self, sensor: str, range_m: float, resolution: str | None = None) -> float:
+        """1 sigma of one frame's centre along the line of sight at `range_m` (stereo: in the mode
+        `resolution`, default the search's)."""
         if sensor == "tof":
             return self.tof_sigma_m
-        return self.stereo_sigma_m + self.stereo_sigma_per_m2 * range_m ** 2
+        return self.stereo_sigma_m + self.stereo_sigma_per_m2 * self.stereo_detail(resolution) * range_m ** 2
 
-    def measurement_cov(self, sensor: str, offset: np.ndarray) -> np.ndarray:
+    def measurement_cov(self, sensor: str, offset: np.ndarray, resolution: str | None = None) -> np.ndarray:
         """The (2, 2) world covariance of one frame's centre at `offset` (world x, y) from the sensor:
         the stereo pair measures the range from disparity, far less surely than the bearing."""
         offset = np.asarray(offset, dtype=float)
         range_m = float(np.linalg.norm(offset))
-        along = self.sigma_m(sensor, range_m)
+        along = self.sigma_m(sensor, range_m, resolution)
         if sensor == "tof" or range_m < 1e-6:
             return np.eye(2) * along ** 2
         sight = offset / range_m

@@ -9,6 +9,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from drivers.avt import PIKE_F210B_SENSOR, mode_intrinsics
 from rvs_server.devices.frame_points import FramePoints, FrameSettings
 from toolbox.geometry import RoverPose, direction_of
 from toolbox.mapping import dem as dem_tools
@@ -42,10 +43,13 @@ class Seen:
 class Sight:
     """One tracking sensor on the PTU, for the search and the tracker."""
 
-    def __init__(self, server: Host, settings: TrackingSettings, sensor: str):
+    def __init__(self, server: Host, settings: TrackingSettings, sensor: str, resolution: str | None = None):
+        """`resolution`: the stereo pair's mode for these frames (default the search's, settings'
+        stereo_resolution)."""
         self.server, self.settings, self.sensor = server, settings, sensor
+        self.resolution = resolution or settings.stereo_resolution
         self.frames = FramePoints(server, FrameSettings(
-            sensor, settings.max_range_m, settings.stereo_resolution, settings.stereo_disparities,
+            sensor, settings.max_range_m, self.resolution, settings.stereo_disparities,
             tof_max_distance_m=settings.tof_max_distance_m if sensor == "tof" else None,
             min_confidence=settings.tof_min_confidence, tof_max_integration=settings.tof_max_integration))
         calibration = server.calibration()
@@ -57,10 +61,10 @@ class Sight:
             k = calibration.tof_intrinsics
         else:
             cameras = server.devices.cameras
-            k = cameras.ready_driver().camera("left").intrinsics(self.settings.stereo_resolution) \
+            k = cameras.ready_driver().camera("left").intrinsics(self.resolution) \
                 if cameras.driver is not None else None
-            if k is None:
-                return (30.6, 18.4)    # the Pike F-210B with its 12 mm lens
+            if k is None:              # the Pike F-210B with its 12 mm lens
+                k = mode_intrinsics(PIKE_F210B_SENSOR, self.resolution)
         return (math.degrees(math.atan2(k.width / 2, k.fx)), math.degrees(math.atan2(k.height / 2, k.fy)))
 
     def aim(self, pose: RoverPose, target: np.ndarray) -> tuple[float, float]:

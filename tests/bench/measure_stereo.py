@@ -18,7 +18,7 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO))
-from drivers.avt import CameraSettings  # noqa: E402
+from drivers.avt import RESOLUTION_MODES, CameraSettings  # noqa: E402
 from drivers.avt_emulator import emulated_stereo_pair  # noqa: E402
 from drivers.sim.clock import SimClock  # noqa: E402
 from drivers.sim.config import WorldConfig  # noqa: E402
@@ -70,7 +70,7 @@ def measure(seed: int, resolution: str) -> tuple[float, float, float, float, flo
 def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3])
-    parser.add_argument("--resolution", default="medium", choices=["low", "medium", "high", "highest"])
+    parser.add_argument("--resolution", default="medium", choices=RESOLUTION_MODES)
     args = parser.parse_args()
     for seed in args.seeds:
         median, p90, share, grab_s, render_s = measure(seed, args.resolution)

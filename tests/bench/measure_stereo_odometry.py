@@ -27,7 +27,7 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO))
-from drivers.avt import CameraSettings  # noqa: E402
+from drivers.avt import RESOLUTION_MODES, CameraSettings  # noqa: E402
 from drivers.avt_emulator import emulated_stereo_pair  # noqa: E402
 from drivers.sim.clock import SimClock  # noqa: E402
 from drivers.sim.config import WorldConfig  # noqa: E402
@@ -147,7 +147,7 @@ def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3, 4, 5])
     parser.add_argument("--tilt", type=float, default=-20.0)
-    parser.add_argument("--resolution", default="medium", choices=["low", "medium", "high", "highest"])
+    parser.add_argument("--resolution", default="medium", choices=RESOLUTION_MODES)
     parser.add_argument("--chain", action="store_true", help="also the 5 m traverse with and without keyframe reuse")
     parser.add_argument("--one-way", action="store_true", help="refine with the keyframe's points only")
     parser.add_argument("--no-offset", action="store_true", help="trust the rig's disparity (no offset fitted)")

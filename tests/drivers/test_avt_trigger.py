@@ -185,7 +185,7 @@ def test_settings_file_keys_missing_take_defaults(tmp_path):
 @pytest.mark.parametrize("values, expected", [
     ({"exposure_us": -5}, r"exposure_us = -5 is not allowed: .*greater than or equal to 10"),
     ({"gain_db": 40}, r"gain_db = 40 is not allowed: .*less than or equal to 24"),
-    ({"resolution": "huge"}, r"resolution = 'huge' is not allowed: .*'low', 'medium', 'high' or 'highest'"),
+    ({"resolution": "huge"}, r"resolution = 'huge' is not allowed: .*'low', 'medium', 'high', 'highest' or 'narrow'"),
     ({"pixel_format": "yuv422"}, r"pixel_format = 'yuv422' is not allowed: .*'mono8' or 'rgb8'"),
     ({"target_grey_level": 300}, r"target_grey_level = 300 is not allowed"),
     ({"shutter": 5}, r"unknown key 'shutter' \(allowed keys: resolution, pixel_format, exposure_us"),
@@ -213,7 +213,8 @@ def test_bad_settings_files_are_refused_with_the_path(tmp_path):
 def test_resolution_modes_bin_or_window_the_sensor():
     modes = intrinsics_per_mode(PIKE_F210B_SENSOR)
     sizes = {mode: (camera.width, camera.height) for mode, camera in modes.items()}
-    assert sizes == {"low": (480, 270), "medium": (960, 540), "high": (1440, 810), "highest": (1920, 1080)}
+    assert sizes == {"low": (480, 270), "medium": (960, 540), "high": (1440, 810), "highest": (1920, 1080),
+                     "narrow": (360, 405)}
     # A point seen by the full sensor lands on the same spot of each mode's pixel grid.
     point = np.array([0.3, -0.2, 4.0])
     u_full, v_full = PIKE_F210B_SENSOR.project(point)
@@ -221,6 +222,8 @@ def test_resolution_modes_bin_or_window_the_sensor():
     assert u_low == pytest.approx((u_full - 1.5) / 4) and v_low == pytest.approx((v_full - 1.5) / 4)
     u_high, v_high = modes["high"].project(point)
     assert (u_high, v_high) == pytest.approx((u_full - 240, v_full - 135))
+    u_narrow, v_narrow = modes["narrow"].project(point)       # binned by 2, then the middle window
+    assert (u_narrow, v_narrow) == pytest.approx(((u_full - 0.5) / 2 - 300, (v_full - 0.5) / 2 - 67))
 
 
 # --------------------------------------------------------------------------------------------
