@@ -34,7 +34,7 @@ import sys
 import tempfile
 import time
 import tomllib
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 from pathlib import Path
 
 import numpy as np
@@ -107,14 +107,13 @@ class Lanes:
     def cell_of(self, x: float, y: float) -> tuple[int, int]:
         return int((y - self.y0) // self.cell), int((x - self.x0) // self.cell)
 
-    def route(self, x: float, y: float, length: float, reach: float = 8.0,
-              clear: Callable[[float, float, float, float], bool] = lambda *lane: True
-              ) -> list[tuple[float, float]] | None:
+    def route(self, x: float, y: float, length: float, reach: float = 12.0,
+              clear: Callable[[float, float, float, float], bool] = lambda *lane: True,
+              avoid: Collection[tuple[int, int]] = ()) -> list[tuple[float, float]] | None:
         """Waypoints (world x, y) from the rover at (x, y) to the start of the nearest clear lane of
         `length` (at any heading; a lane this grid's `clear` and `clear(x, y, heading, length)` both
         pass) that it can reach by passable ground, the start last; None when no lane lies within
-        `reach` along the way. A start within 0.3 m of the rover is not one: it stands there, and the
-        caller found no lane where it stands."""
+        `reach` along the way. Starts whose cells are in `avoid` (tried before) are not taken."""
         rows, cols = self.passable.shape
         here = self.cell_of(x, y)
         if not (0 <= here[0] < rows and 0 <= here[1] < cols):
@@ -133,12 +132,14 @@ class Lanes:
         starts = (labels[rr, cc] == mine)
         sx, sy = self.x0 + (cc + 0.5) * self.cell, self.y0 + (rr + 0.5) * self.cell
         distance = np.hypot(sx - x, sy - y)
-        starts &= (distance <= reach) & (distance >= 0.3)
+        starts &= distance <= reach
         headings = np.radians(np.arange(0, 360, 10))
         for index in np.argsort(np.where(starts, distance, np.inf), axis=None):
             if not starts.flat[index]:
                 break
             lx, ly = float(sx.flat[index]), float(sy.flat[index])
+            if self.cell_of(lx, ly) in avoid:
+                continue
             # The grid's own look first (cheap), then the caller's.
             if not any(self.clear(lx, ly, float(h), length) and clear(lx, ly, float(h), length) for h in headings):
                 continue
@@ -184,6 +185,7 @@ class Scene(SceneWorld):
     def __init__(self, seed: int, workdir: Path, cover: float):
         super().__init__(seed, cover)
         self.relocation_contacts = 0  # contacts while driving unguarded to a lane (not the guard's)
+        self.tried_starts: set[tuple[int, int]] = set()   # lane starts relocation drove to
         config = write_configs(workdir / "configs", {"world.toml": self.world_text})
         self.server = ServerProcess(workdir / "data", config).start(timeout=180)
         self.client = self.server.connect(timeout=900)
@@ -229,9 +231,11 @@ class Scene(SceneWorld):
         truth says is passable, unguarded (positioning, not measured: its distance is not clean driving
         and its contacts are counted apart). False when none is in reach."""
         x, y, h = self.true_pose()
-        route = self.lanes.route(x, y, length, clear=self.lane_clear)
+        route = self.lanes.route(x, y, length, clear=self.lane_clear, avoid=self.tried_starts)
         if route is None:
             return False
+        # A start the drive error left the rover beside, with no clear lane there, is not tried again.
+        self.tried_starts.add(self.lanes.cell_of(*route[-1]))
         before = self.contacts()
         for wx, wy in route:
             x, y, h = self.true_pose()
