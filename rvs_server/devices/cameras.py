@@ -6,13 +6,25 @@ from typing import Literal
 
 from pydantic import Field
 
-from drivers.avt import ResolutionMode
+from drivers.avt import MODE_BINNING, PIKE_F210B_SENSOR, ResolutionMode, mode_intrinsics
 from drivers.errors import DeviceFault
+from toolbox.camera import Intrinsics
 
 from ..config import Settings
 from .base import SensorDevice
 
-Resolution = ResolutionMode
+Resolution = ResolutionMode   # the cameras' modes, for the capabilities' settings
+
+
+def mode_binning(mode: str) -> int:
+    """How many sensor pixels a side one pixel of a resolution mode bins."""
+    return MODE_BINNING[mode]
+
+
+def nominal_intrinsics(mode: str) -> Intrinsics:
+    """The thesis camera's (Pike F-210B, 12 mm lens) pinhole model in a resolution mode, where no
+    camera is at hand to say its own."""
+    return mode_intrinsics(PIKE_F210B_SENSOR, mode)
 
 
 class CamerasDeviceConfig(Settings):

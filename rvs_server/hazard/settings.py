@@ -6,8 +6,8 @@ from typing import Literal
 
 from pydantic import Field
 
-from drivers.avt import ResolutionMode
 from rvs_server.config import Settings
+from rvs_server.devices.cameras import Resolution
 
 Sensor = Literal["tof", "stereo"]
 
@@ -33,7 +33,7 @@ class HazardSettings(Settings):
                                     "than speed x (1/rate + this) behind the rover")
     max_blind_s: float = Field(10.0, gt=0, le=600, description="a drive without a fresh frame this long (wall "
                                "clock) stops")
-    stereo_resolution: ResolutionMode = Field(
+    stereo_resolution: Resolution = Field(
         "low", description="the cameras' resolution mode for hazard frames (low: 4 x 4 binning, 480 x 270), given "
         "back after each frame")
     stereo_disparities: int = Field(64, ge=16, le=256, multiple_of=16)

@@ -6,8 +6,8 @@ from typing import Annotated, Literal
 import numpy as np
 from pydantic import Field
 
-from drivers.avt import MODE_BINNING, ResolutionMode
 from rvs_server.config import PerSensor, Range, Settings
+from rvs_server.devices.cameras import Resolution, mode_binning
 from toolbox.tracking.kalman import TrackParams
 from toolbox.tracking.person import PersonModel, Trapezoid
 from toolbox.tracking.standing import StandingParams
@@ -42,9 +42,9 @@ class TrackingSettings(Settings):
                                      "short ones); the camera's own given back when a job takes it")
     tof_min_confidence: int = Field(4096, ge=0, le=65535, description="SR4000 pixels below this confidence are "
                                     "dropped (mapping's 16384 drops the ground a person stands on at 10 m range)")
-    stereo_resolution: ResolutionMode = Field(
+    stereo_resolution: Resolution = Field(
         "low", description="the cameras' mode for tracking frames (low: 4 x 4 binning), given back after each")
-    stereo_track_resolution: ResolutionMode = Field(
+    stereo_track_resolution: Resolution = Field(
         "low", description="the cameras' mode for the tracker's frames (narrow: the middle 25 x 28 degrees at 2 x "
         "2 binning, as few pixels as low, for a target the PTU keeps in the middle; the search keeps "
         "stereo_resolution's wide view); the stereo noise terms below are for 4 x 4 binning and scale with the "
@@ -107,7 +107,7 @@ class TrackingSettings(Settings):
     def stereo_detail(self, resolution: str | None) -> float:
         """The stereo range noise of a mode against 4 x 4 binning's (what the noise terms are given
         for): a disparity error of a fixed share of a pixel, so it scales with the binning."""
-        return MODE_BINNING[resolution or self.stereo_resolution] / 4
+        return mode_binning(resolution or self.stereo_resolution) / 4
 
     def standing(self, sensor: str, resolution: str | None = None) -> StandingParams:
         """The ground and standing points' parameters of a sensor's frames (stereo: in the mode

@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from drivers.avt import PIKE_F210B_SENSOR, mode_intrinsics
+from rvs_server.devices.cameras import nominal_intrinsics
 from rvs_server.devices.frame_points import FramePoints, FrameSettings
 from toolbox.geometry import RoverPose, direction_of
 from toolbox.mapping import dem as dem_tools
@@ -64,7 +64,7 @@ class Sight:
             k = cameras.ready_driver().camera("left").intrinsics(self.resolution) \
                 if cameras.driver is not None else None
             if k is None:              # the Pike F-210B with its 12 mm lens
-                k = mode_intrinsics(PIKE_F210B_SENSOR, self.resolution)
+                k = nominal_intrinsics(self.resolution)
         return (math.degrees(math.atan2(k.width / 2, k.fx)), math.degrees(math.atan2(k.height / 2, k.fy)))
 
     def aim(self, pose: RoverPose, target: np.ndarray) -> tuple[float, float]:
