@@ -18,6 +18,7 @@ import argparse
 import math
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -38,7 +39,13 @@ from toolbox.geometry import relative_pose  # noqa: E402
 from toolbox.mapping import hazard as H  # noqa: E402
 from toolbox.mapping.corridor import CorridorParams, corridor_view  # noqa: E402
 from toolbox.mapping.dem import view_points  # noqa: E402
-from toolbox.mapping.stereo import SgbmConfig, StereoCalibration, rectification, stereo_points  # noqa: E402
+from toolbox.mapping.stereo import (  # noqa: E402
+    Rectification,
+    SgbmConfig,
+    StereoCalibration,
+    rectification,
+    stereo_points,
+)
 
 # A false hazard this close to the leading edge may stop a drive: nearer frames do not see it again
 # (the view's foot lies about 0.8 m ahead of the edge), and the guard remembers it. Farther ones are
@@ -46,13 +53,27 @@ from toolbox.mapping.stereo import SgbmConfig, StereoCalibration, rectification,
 NEAR_M = 1.5
 
 
-def stereo_frame(rover: Rover, tilt: float, config: SgbmConfig, max_range: float, seed: int) -> np.ndarray:
-    """World points of one low-mode stereo pair at pan 0 and `tilt`, rendered from the true mounts and
-    made into points with the calibrated ones, as the guard does."""
-    world = rover.world
+@dataclass(frozen=True)
+class Pair:
+    """One low-mode stereo pair taken by a rover, with what the guard makes points of it with."""
+
+    images: tuple[np.ndarray, np.ndarray]   # grey left, right
+    rect: Rectification                     # from the calibrated mounts
+    camera: np.ndarray                      # the left camera's calibrated pose (4x4)
+
+    def points(self, config: SgbmConfig, max_range: float) -> np.ndarray:
+        """World points of the pair matched with `config`, those beyond `max_range` dropped."""
+        points, valid = stereo_points(*self.images, self.rect, config)
+        valid &= points[..., 2] < max_range
+        return view_points(points, valid, self.camera)
+
+
+def stereo_pair(rover: Rover, tilt: float, seed: int) -> Pair:
+    """One low-mode stereo pair at pan 0 and `tilt`, rendered from the true mounts, to be made into
+    points with the calibrated ones, as the guard does."""
     left_true, right_true = (rover.sensor_to_world(role, 0.0, tilt) for role in ("left", "right"))
-    pair = emulated_stereo_pair(world, lambda t: left_true, lambda t: right_true, clock=SimClock(1.0), seed=seed,
-                                default_settings=CameraSettings(resolution="low"))
+    pair = emulated_stereo_pair(rover.world, lambda t: left_true, lambda t: right_true, clock=SimClock(1.0),
+                                seed=seed, default_settings=CameraSettings(resolution="low"))
     pair.open()
     try:
         frames = pair.grab(timeout_s=60)
@@ -61,9 +82,8 @@ def stereo_frame(rover: Rover, tilt: float, config: SgbmConfig, max_range: float
         pair.close()
     left_level, right_level = (rover.sensor_to_world(role, 0.0, 0.0, calibrated=True) for role in ("left", "right"))
     rect = rectification(StereoCalibration(k_left, k_right, relative_pose(left_level, right_level)))
-    points, valid = stereo_points(grey(frames["left"].image), grey(frames["right"].image), rect, config)
-    valid &= points[..., 2] < max_range
-    return view_points(points, valid, rover.sensor_to_world("left", 0.0, tilt, calibrated=True))
+    return Pair((grey(frames["left"].image), grey(frames["right"].image)), rect,
+                rover.sensor_to_world("left", 0.0, tilt, calibrated=True))
 
 
 def clear_poses(scene: SceneWorld, count: int, rng: np.random.Generator) -> list[tuple[float, float, float]]:
@@ -88,7 +108,7 @@ def explain(scene: SceneWorld, pose: list[float], args: argparse.Namespace, conf
     height error against the truth by distance ahead."""
     x, y, h = pose[0], pose[1], math.radians(pose[2])
     rover = Rover(scene.world, x=x, y=y, heading=h)
-    points = stereo_frame(rover, args.tilt, config, args.max_range, 0)
+    points = stereo_pair(rover, args.tilt, 0).points(config, args.max_range)
     view = corridor_view(points, (x, y, h), params, 1)
     maps = H.hazard_maps(view.heights, params.cell, params.hazard)
     xs, ys = view.spec.centres()
@@ -147,7 +167,7 @@ def main() -> None:
                       y + distance * math.sin(h) + offset * math.cos(h))
                 rock = (scene.world.add_rock(*at, height=height), at, height, distance)
             started = time.perf_counter()
-            points = stereo_frame(rover, args.tilt, config, args.max_range, seed * 1000 + index)
+            points = stereo_pair(rover, args.tilt, seed * 1000 + index).points(config, args.max_range)
             view = corridor_view(points, (x, y, h), params, 1)
             seconds.append(time.perf_counter() - started)
             if rock is None:

@@ -1,20 +1,30 @@
 """The stereo guard's frames near the view's foot: ground nearer than the matcher's search reaches
 is not made into ground metres too far and too low (false steps beside it)."""
+import importlib.util
+import sys
+from pathlib import Path
+
 import numpy as np
 import pytest
 
-from drivers.avt import CameraSettings
-from drivers.avt_emulator import emulated_stereo_pair
-from drivers.sim.clock import SimClock
 from drivers.sim.config import WorldConfig
 from drivers.sim.rover import Rover
 from drivers.sim.world import World
-from toolbox.colour import grey
-from toolbox.geometry import relative_pose
 from toolbox.mapping import hazard as H
 from toolbox.mapping.corridor import CorridorParams, corridor_view
-from toolbox.mapping.dem import view_points
-from toolbox.mapping.stereo import SgbmConfig, StereoCalibration, rectification, stereo_points
+from toolbox.mapping.stereo import SgbmConfig
+
+BENCH = Path(__file__).resolve().parents[1] / "bench"
+
+
+def measure_corridor():
+    """tests/bench/measure_corridor.py, whose pair is the guard's chain without a server."""
+    sys.path.insert(0, str(BENCH))    # it imports the hazard campaign beside it
+    spec = importlib.util.spec_from_file_location("measure_corridor", BENCH / "measure_corridor.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module       # its dataclass looks itself up there
+    spec.loader.exec_module(module)
+    return module
 
 
 @pytest.fixture(scope="module")
@@ -24,26 +34,12 @@ def steep_look():
     degrees meets it uphill: a crater's 11-degree side, seed 31 of the hazard campaign)."""
     world = World.build(WorldConfig(seed=7, size_m=(8.0, 8.0), rocks={"cover": 0.0}, craters={"count": 0}))
     rover = Rover(world, x=-2.0, y=0.0, heading=0.0)
-    tilt = -44.0
-    left, right = (rover.sensor_to_world(role, 0.0, tilt) for role in ("left", "right"))
-    pair = emulated_stereo_pair(world, lambda t: left, lambda t: right, clock=SimClock(1.0), seed=3,
-                                default_settings=CameraSettings(resolution="low"))
-    pair.open()
-    frames = pair.grab(timeout_s=60)
-    k_left, k_right = (pair.camera(role).intrinsics("low") for role in ("left", "right"))
-    pair.close()
-    level = [rover.sensor_to_world(role, 0.0, 0.0, calibrated=True) for role in ("left", "right")]
-    rect = rectification(StereoCalibration(k_left, k_right, relative_pose(*level)))
-    images = grey(frames["left"].image), grey(frames["right"].image)
-    return world, rover, rect, images, rover.sensor_to_world("left", 0.0, tilt, calibrated=True)
+    return world, rover, measure_corridor().stereo_pair(rover, -44.0, seed=3)
 
 
 def ground_errors(steep_look, min_disparity: int) -> tuple[np.ndarray, np.ndarray]:
-    world, rover, rect, images, camera = steep_look
-    points, valid = stereo_points(*images, rect, SgbmConfig(min_disparity=min_disparity, num_disparities=64,
-                                                            block_size=5))
-    valid &= points[..., 2] < 4.0
-    world_points = view_points(points, valid, camera)
+    world, _, pair = steep_look
+    world_points = pair.points(SgbmConfig(min_disparity=min_disparity, num_disparities=64, block_size=5), 4.0)
     return world_points, world_points[:, 2] - world.height_at(world_points[:, 0], world_points[:, 1])
 
 
